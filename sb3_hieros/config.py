@@ -1,0 +1,326 @@
+"""Hyperparameters of HIEROS as dataclasses, with the presets ``"paper"`` and ``"small"``.
+
+``"paper"`` is thesis section 4.6.3 (Mattes 2023), completed where the table is silent with the values of the
+paper-time runs of the public code (research note ``hieros_reference.md`` sections 2 and 9). ``"small"`` keeps
+every code path and shrinks the widths so that a CPU learns CartPole in minutes.
+
+Every value not given explicitly to :class:`~sb3_hieros.HIEROS` comes from the chosen preset.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+WORLD_MODEL_KINDS = ("s5", "rssm")
+DETER_SOURCES = ("state", "output")
+IMAG_GRADIENTS = ("auto", "reinforce", "dynamics")
+
+
+def _check_positive(obj: object, *names: str) -> None:
+    for name in names:
+        value = getattr(obj, name)
+        if not isinstance(value, int | float) or isinstance(value, bool) or value <= 0:
+            raise ValueError(f"{type(obj).__name__}.{name} must be a positive number, got {value!r}")
+
+
+def _check_choice(obj: object, name: str, choices: tuple[str, ...]) -> None:
+    value = getattr(obj, name)
+    if value not in choices:
+        raise ValueError(f"{type(obj).__name__}.{name} must be one of {choices}, got {value!r}")
+
+
+def _check_fraction(obj: object, *names: str) -> None:
+    for name in names:
+        value = getattr(obj, name)
+        if not 0.0 <= value <= 1.0:
+            raise ValueError(f"{type(obj).__name__}.{name} must lie in [0, 1], got {value!r}")
+
+
+@dataclass
+class WorldModelConfig:
+    """World model of one level (thesis 4.4, eq. 4.10-4.13).
+
+    :param kind: ``"s5"`` (S5WM, default) or ``"rssm"`` (DreamerV3's GRU world model, ablation 5.3.2)
+    :param s5_layers: number of S5 blocks in the sequence model (thesis: 8; ablation 5.3.7: 4)
+    :param s5_model_dim: S5 model width H
+    :param s5_state_dim: S5 complex state size P
+    :param s5_hippo_blocks: HiPPO-N initialisation blocks J
+    :param dropout: dropout inside the S5 blocks
+    :param deter_dim: size of the deterministic state h_t
+    :param deter_from: ``"state"``: h_t read out from the S5 internal states (thesis 5.3.5, default);
+        ``"output"``: h_t from the stack output m_t
+    :param stoch_groups: number of categorical latents in z_t
+    :param stoch_classes: classes per categorical latent
+    :param hidden: width of the prior/posterior/input layers
+    :param cnn_depth: channels of the first conv layer (doubled per stage)
+    :param mlp_units: width of the MLP encoder/decoder for vector observations
+    :param mlp_layers: depth of the MLP encoder/decoder
+    :param head_units: width of the reward and continue heads
+    :param head_layers: depth of the reward and continue heads
+    :param unimix: uniform mixture of the categorical latents
+    :param dyn_scale: weight of the dynamics KL (alpha_dyn, eq. 4.10)
+    :param rep_scale: weight of the representation KL (alpha_rep, eq. 4.10)
+    :param free_bits: free nats of both KL terms (eq. 4.12, 4.13)
+    :param lr: learning rate of the world model optimiser (AdamW)
+    :param eps: AdamW epsilon
+    :param grad_clip: gradient norm clip
+    :param weight_decay: AdamW weight decay (never applied to the S5 SSM parameters)
+    :param warmup: linear learning-rate warm-up in updates
+    """
+
+    kind: str = "s5"
+    s5_layers: int = 8
+    s5_model_dim: int = 256
+    s5_state_dim: int = 128
+    s5_hippo_blocks: int = 4
+    dropout: float = 0.1
+    deter_dim: int = 256
+    deter_from: str = "state"
+    stoch_groups: int = 32
+    stoch_classes: int = 32
+    hidden: int = 256
+    cnn_depth: int = 24
+    mlp_units: int = 512
+    mlp_layers: int = 2
+    head_units: int = 256
+    head_layers: int = 2
+    unimix: float = 0.01
+    dyn_scale: float = 0.5
+    rep_scale: float = 0.1
+    free_bits: float = 1.0
+    lr: float = 1e-4
+    eps: float = 1e-8
+    grad_clip: float = 1000.0
+    weight_decay: float = 0.0
+    warmup: int = 1000
+
+    def __post_init__(self) -> None:
+        _check_choice(self, "kind", WORLD_MODEL_KINDS)
+        _check_choice(self, "deter_from", DETER_SOURCES)
+        _check_positive(
+            self,
+            "s5_layers",
+            "s5_model_dim",
+            "s5_state_dim",
+            "s5_hippo_blocks",
+            "deter_dim",
+            "stoch_groups",
+            "stoch_classes",
+            "hidden",
+            "cnn_depth",
+            "mlp_units",
+            "mlp_layers",
+            "head_units",
+            "head_layers",
+            "lr",
+            "eps",
+            "grad_clip",
+        )
+        _check_fraction(self, "dropout", "unimix")
+        if self.s5_state_dim % self.s5_hippo_blocks:
+            raise ValueError(
+                f"WorldModelConfig.s5_state_dim ({self.s5_state_dim}) must be divisible by "
+                f"s5_hippo_blocks ({self.s5_hippo_blocks})"
+            )
+        if self.weight_decay < 0 or self.warmup < 0 or self.free_bits < 0:
+            raise ValueError(
+                "WorldModelConfig.weight_decay, warmup and free_bits must be >= 0, got "
+                f"{self.weight_decay!r}, {self.warmup!r}, {self.free_bits!r}"
+            )
+
+
+@dataclass
+class ActorCriticConfig:
+    """Actor and the three critics of one level (thesis 4.3.2, eq. 4.3, 4.6-4.9).
+
+    :param units: width of actor and critic MLPs
+    :param layers: depth of actor and critic MLPs
+    :param discount: gamma of the lambda-returns
+    :param lambda_: lambda of the lambda-returns
+    :param entropy: entropy bonus eta (eq. 4.9)
+    :param unimix: uniform mixture of categorical actions
+    :param extrinsic_weight: weight of the extrinsic reward term (eq. 4.3)
+    :param subgoal_weight: weight alpha_g of the subgoal reward term (eq. 4.3)
+    :param novelty_weight: weight alpha_nov of the novelty reward term (eq. 4.3)
+    :param actor_extras: feed reward, continue and prior entropy to actor and critics (eq. 4.6; ablation 5.3.11)
+    :param imag_gradient: ``"reinforce"``, ``"dynamics"`` or ``"auto"`` (REINFORCE for discrete actions and
+        subgoals, dynamics backpropagation for Box actions)
+    :param actor_lr: actor learning rate (the public code's 3e-5; the thesis table's 1e-4 is the world model's)
+    :param critic_lr: critic learning rate
+    :param eps: AdamW epsilon of actor and critics
+    :param grad_clip: gradient norm clip of actor and critics
+    :param slow_critic_fraction: EMA fraction of the slow critics, applied every update
+    """
+
+    units: int = 256
+    layers: int = 2
+    discount: float = 0.997
+    lambda_: float = 0.95
+    entropy: float = 3e-4
+    unimix: float = 0.01
+    extrinsic_weight: float = 1.0
+    subgoal_weight: float = 0.3
+    novelty_weight: float = 0.1
+    actor_extras: bool = True
+    imag_gradient: str = "auto"
+    actor_lr: float = 3e-5
+    critic_lr: float = 3e-5
+    eps: float = 1e-5
+    grad_clip: float = 100.0
+    slow_critic_fraction: float = 0.02
+
+    def __post_init__(self) -> None:
+        _check_positive(self, "units", "layers", "actor_lr", "critic_lr", "eps", "grad_clip")
+        _check_fraction(self, "discount", "lambda_", "unimix", "slow_critic_fraction")
+        _check_choice(self, "imag_gradient", IMAG_GRADIENTS)
+        for name in ("entropy", "extrinsic_weight", "subgoal_weight", "novelty_weight"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"ActorCriticConfig.{name} must be >= 0, got {getattr(self, name)!r}")
+
+
+@dataclass
+class SubgoalConfig:
+    """Subgoal autoencoder of one level (thesis 4.3.1, eq. 4.1-4.2).
+
+    :param n_cat: number of categorical subgoal variables (thesis: 8)
+    :param n_classes: classes per subgoal variable (thesis: 8)
+    :param units: width of encoder and decoder MLPs
+    :param layers: depth of encoder and decoder MLPs
+    :param beta: weight of the KL to the uniform prior (eq. 4.2)
+    :param lr: learning rate
+    :param eps: AdamW epsilon
+    :param grad_clip: gradient norm clip
+    """
+
+    n_cat: int = 8
+    n_classes: int = 8
+    units: int = 256
+    layers: int = 2
+    beta: float = 0.5
+    lr: float = 1e-4
+    eps: float = 1e-6
+    grad_clip: float = 100.0
+
+    def __post_init__(self) -> None:
+        _check_positive(self, "n_cat", "n_classes", "units", "layers", "lr", "eps", "grad_clip")
+        if self.beta < 0:
+            raise ValueError(f"SubgoalConfig.beta must be >= 0, got {self.beta!r}")
+
+
+@dataclass
+class HierosConfig:
+    """Everything a HIEROS agent needs besides the environment.
+
+    :param world_model: world model of every level
+    :param actor_critic: actor-critic of every level
+    :param subgoal: subgoal autoencoder of every level
+    :param n_levels: hierarchy depth (thesis: 3; ablation 5.3.4)
+    :param subgoal_interval: k, steps of level i between two actions of level i+1 (thesis: 4)
+    :param batch_size: chunks per update
+    :param batch_length: steps per chunk
+    :param imag_horizon: imagination horizon
+    :param train_ratio: replayed steps per environment step at level 0 (DreamerV3's train ratio)
+    :param buffer_size: replay capacity of level 0 in steps (higher levels get ``buffer_size // k**i``)
+    :param learning_starts: environment steps of random actions before training starts
+    :param etbs_temperature: tau of ETBS (thesis 4.5, eq. 4.21)
+    :param replay: ``"etbs"`` (default), ``"uniform"``, ``"reference"`` or ``"count"`` (ablation 5.3.3)
+    """
+
+    world_model: WorldModelConfig = field(default_factory=WorldModelConfig)
+    actor_critic: ActorCriticConfig = field(default_factory=ActorCriticConfig)
+    subgoal: SubgoalConfig = field(default_factory=SubgoalConfig)
+    n_levels: int = 3
+    subgoal_interval: int = 4
+    batch_size: int = 16
+    batch_length: int = 64
+    imag_horizon: int = 16
+    train_ratio: float = 1024.0
+    buffer_size: int = 1_000_000
+    learning_starts: int = 1024
+    etbs_temperature: float = 0.3
+    replay: str = "etbs"
+
+    def __post_init__(self) -> None:
+        _check_positive(
+            self, "n_levels", "subgoal_interval", "batch_size", "batch_length", "imag_horizon", "train_ratio"
+        )
+        _check_positive(self, "buffer_size")
+        if self.learning_starts < 0:
+            raise ValueError(f"HierosConfig.learning_starts must be >= 0, got {self.learning_starts!r}")
+        _check_fraction(self, "etbs_temperature")
+        _check_choice(self, "replay", ("etbs", "uniform", "reference", "count"))
+
+    def replace(self, **changes: Any) -> HierosConfig:
+        """A copy with top-level fields replaced; nested sections take a dict of their own fields.
+
+        :param changes: e.g. ``n_levels=2, world_model={"s5_layers": 4}``
+        :return: the new configuration (validated)
+        """
+        top = {f.name for f in dataclasses.fields(self)}
+        unknown = set(changes) - top
+        if unknown:
+            raise ValueError(f"unknown HierosConfig fields {sorted(unknown)}; expected some of {sorted(top)}")
+        resolved: dict[str, Any] = {}
+        for name, value in changes.items():
+            current = getattr(self, name)
+            if dataclasses.is_dataclass(current) and isinstance(value, dict):
+                names = {f.name for f in dataclasses.fields(current)}
+                bad = set(value) - names
+                if bad:
+                    raise ValueError(
+                        f"unknown {type(current).__name__} fields {sorted(bad)}; expected some of {sorted(names)}"
+                    )
+                value = dataclasses.replace(current, **value)
+            resolved[name] = value
+        return dataclasses.replace(self, **resolved)
+
+
+def paper_config() -> HierosConfig:
+    """Thesis table 4.6.3 (about 37M parameters for 18 Atari actions)."""
+    return HierosConfig()
+
+
+def small_config() -> HierosConfig:
+    """A CPU preset: same code paths, 2 S5 blocks, narrower widths, a lower train ratio."""
+    return HierosConfig(
+        world_model=WorldModelConfig(
+            s5_layers=2,
+            s5_model_dim=128,
+            s5_state_dim=64,
+            s5_hippo_blocks=2,
+            dropout=0.0,
+            deter_dim=128,
+            stoch_groups=16,
+            stoch_classes=16,
+            hidden=128,
+            cnn_depth=16,
+            mlp_units=256,
+            head_units=128,
+            lr=3e-4,
+            warmup=100,
+        ),
+        actor_critic=ActorCriticConfig(units=128, actor_lr=1e-4, critic_lr=1e-4),
+        subgoal=SubgoalConfig(units=128),
+        n_levels=2,
+        batch_size=16,
+        batch_length=32,
+        train_ratio=64.0,
+        buffer_size=100_000,
+        learning_starts=500,
+    )
+
+
+PRESETS = {"paper": paper_config, "small": small_config}
+
+
+def get_preset(name: str) -> HierosConfig:
+    """The configuration of a named preset.
+
+    :param name: ``"paper"`` or ``"small"``
+    :return: a fresh :class:`HierosConfig`
+    """
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; expected one of {sorted(PRESETS)}")
+    return PRESETS[name]()
