@@ -23,9 +23,12 @@ candidates at every call.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 ETBS_MODES = ("etbs", "uniform", "reference")
+_LOG_2 = math.log(2.0)
 
 
 def etbs_cdf(x: np.ndarray | float, n_eq: np.ndarray | float) -> np.ndarray:
@@ -39,10 +42,20 @@ def etbs_cdf(x: np.ndarray | float, n_eq: np.ndarray | float) -> np.ndarray:
     :return: ``CDF_s(x)`` as float64, broadcast over ``x`` and ``n_eq``
     """
     x = np.asarray(x, dtype=np.float64)
+    if isinstance(n_eq, (int, float, np.integer, np.floating)):
+        # scalar n (the per-draw hot path): its terms once in Python, then in-place array operations
+        n = float(n_eq)
+        log_n = math.log(n)
+        cdf = np.log(x)
+        cdf -= log_n + 1.0
+        cdf *= x
+        cdf += 2.0 * (log_n - _LOG_2 + 1.0)
+        cdf /= 2.0 * log_n - n - 2.0 * _LOG_2 + 2.0
+        return cdf
     n = np.asarray(n_eq, dtype=np.float64)
     log_n = np.log(n)
-    numerator = x * (np.log(x) - log_n - 1.0) + 2.0 * (log_n - np.log(2.0) + 1.0)
-    denominator = 2.0 * log_n - n - 2.0 * np.log(2.0) + 2.0
+    numerator = x * (np.log(x) - log_n - 1.0) + 2.0 * (log_n - _LOG_2 + 1.0)
+    denominator = 2.0 * log_n - n - 2.0 * _LOG_2 + 2.0
     return numerator / denominator
 
 
@@ -77,19 +90,25 @@ def etbs_index_from_uniform(
     :param capacity: buffer capacity, only used (and required) by ``"reference"``
     :return: int64 indices, 0 = oldest, shape of ``u`` broadcast with ``size``
     """
-    size_f = np.asarray(size, dtype=np.float64)
-    offset = size_f * np.asarray(u, dtype=np.float64)  # x - 2, in [0, size)
+    scalar = isinstance(size, (int, np.integer))
+    size_f = float(size) if scalar else np.asarray(size, dtype=np.float64)
+    offset = np.asarray(u, dtype=np.float64) * size_f  # x - 2, in [0, size)
     if mode == "uniform" or temperature == 0.0:
         index = offset
     else:
         # sizes of 1 give n_eq = 3, where eq. 4.20 is still finite; their index is clamped to 0 below
-        cdf = etbs_cdf(offset + 2.0, size_f + 2.0)
+        index = etbs_cdf(offset + 2.0, size_f + 2.0)
         if mode == "reference":
-            cdf_index = np.minimum(cdf * np.asarray(capacity, dtype=np.float64), size_f - 1.0)
+            index *= np.asarray(capacity, dtype=np.float64)
+            index = np.minimum(index, size_f - 1.0)
+            index *= temperature
         else:
-            cdf_index = cdf * size_f
-        index = temperature * cdf_index + (1.0 - temperature) * offset
-    return np.clip(np.floor(index), 0.0, size_f - 1.0).astype(np.int64)
+            index *= temperature * size_f
+        offset *= 1.0 - temperature
+        index += offset
+    # index >= 0 up to rounding, so truncation is the floor (and a rounding error of -1e-16 gives 0)
+    last = int(size) - 1 if scalar else np.asarray(size, dtype=np.int64) - 1
+    return np.minimum(index.astype(np.int64), last)
 
 
 def etbs_indices(
