@@ -15,6 +15,10 @@ Run from the repository root::
    of the oldest 10% of items over the mean count of the newest 10% (1 = balanced).
 3. Memory: array bytes of a ``SequenceReplayBuffer`` holding 100k steps of 64x64x3 uint8 observations over
    the raw observation bytes (100k * 64 * 64 * 3); SB3's ``ReplayBuffer`` for contrast.
+
+Beyond the thesis: ``MeanFieldCountSampler`` (O(1) per draw) is timed and plotted next to the count-based
+sampler at the same temperatures; ``meanfield_max_decile_deviation_*`` is the largest relative difference of
+the per-decile mean counts between the two (goal: <= 0.10).
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ from stable_baselines3.common.buffers import ReplayBuffer
 
 from benchmarks._timing import environment_header, time_interleaved
 from sb3_hieros.buffers import ETBSReplayBuffer, SequenceReplayBuffer
-from sb3_hieros.etbs import CountBalancedSampler, etbs_indices
+from sb3_hieros.etbs import CountBalancedSampler, MeanFieldCountSampler, etbs_indices
 
 BATCH = 16
 FIG_ITEMS = 4000
@@ -57,6 +61,9 @@ def selection_cost(reps: int) -> dict[str, float]:
 
     for size in (1_000, 10_000, 100_000, 1_000_000, 50_000_000):
         add(f"etbs_{size:.0e}", lambda s=size: etbs_indices(s, BATCH, 0.3, rng), 200)
+    meanfield = MeanFieldCountSampler(1.0)
+    for size in (1_000_000, 50_000_000):
+        add(f"mfield_{size:.0e}", lambda s=size: meanfield.sample(s, BATCH, rng), 200)
     for size, k in ((10_000, 20), (100_000, 2), (1_000_000, 1)):
         sampler = CountBalancedSampler(size, temperature=1.0)
         add(f"count_{size:.0e}", lambda s=size, c=sampler: c.sample(s, BATCH, rng), k)
@@ -82,6 +89,9 @@ def fig_4_9_counts(seeds: int) -> dict[str, np.ndarray]:
             size, 1, 0.3, rng, mode="reference", capacity=REFERENCE_CAPACITY
         ),
     }
+    for temperature in COUNT_TEMPERATURES:
+        meanfield = MeanFieldCountSampler(temperature)
+        samplers[f"meanfield temp={temperature}"] = lambda size, rng, m=meanfield: m.sample(size, 1, rng)
     counts = {name: np.zeros(FIG_ITEMS) for name in [*samplers, *(f"count temp={t}" for t in COUNT_TEMPERATURES)]}
     for seed in range(seeds):
         for name, draw in samplers.items():
@@ -115,7 +125,9 @@ def save_figure(counts: dict[str, np.ndarray], seeds: int, path: pathlib.Path) -
     items = np.arange(FIG_ITEMS)
     fig, ax = plt.subplots(figsize=(9, 5))
     for name, c in counts.items():
-        ax.plot(items[: FIG_ITEMS - window + 1], np.convolve(c, kernel, mode="valid"), label=name, linewidth=1.2)
+        style = "--" if name.startswith("meanfield") else "-"
+        smooth = np.convolve(c, kernel, mode="valid")
+        ax.plot(items[: FIG_ITEMS - window + 1], smooth, style, label=name, linewidth=1.2)
     harmonic = np.cumsum(1.0 / np.arange(1, FIG_ITEMS + 1))
     ax.plot(items, harmonic[-1] - np.concatenate([[0.0], harmonic[:-1]]), "k:", linewidth=1, label="uniform, expected")
     ax.set_xlabel("item i (insertion order, 0 = oldest)")
@@ -182,6 +194,14 @@ def main() -> None:
         print(f"count_over_etbs_{size}{' (goal >= 1000)' if size == '1e+06' else ''}: {count / etbs:.0f}")
     for name, c in counts.items():
         print(f"old_new_ratio_{name.replace(' ', '_')}: {old_new_ratio(c):.2f}")
+    print(f"meanfield_per_batch16_us_1e6: {per_batch['mfield_1e+06'] * 1e6:.2f}")
+    print(f"meanfield_cost_ratio_5e7_over_1e6: {per_batch['mfield_5e+07'] / per_batch['mfield_1e+06']:.3f}")
+    print(f"count_over_meanfield_1e+06: {per_batch['count_1e+06'] / per_batch['mfield_1e+06']:.0f}")
+    for temperature in COUNT_TEMPERATURES:
+        count = counts[f"count temp={temperature}"].reshape(10, -1).mean(axis=1)
+        meanfield = counts[f"meanfield temp={temperature}"].reshape(10, -1).mean(axis=1)
+        deviation = np.abs(meanfield / count - 1).max()
+        print(f"meanfield_max_decile_deviation_temp={temperature} (goal <= 0.10): {deviation:.3f}")
     print(f"memory_ratio_SequenceReplayBuffer (goal <= 1.2): {memory['SequenceReplayBuffer']:.4f}")
     print(f"memory_ratio_SB3_ReplayBuffer: {memory['SB3 ReplayBuffer']:.4f}")
     print(f"figure: {args.figure}")
