@@ -128,10 +128,13 @@ def save_figure(counts: dict[str, np.ndarray], seeds: int, path: pathlib.Path) -
     kernel = np.ones(window) / window
     items = np.arange(FIG_ITEMS)
     fig, ax = plt.subplots(figsize=(9, 5))
-    for name, c in counts.items():
+    colors = {"uniform": "C0", "etbs tau=0.3": "C1", "etbs tau=1.0": "C2", "reference tau=0.3": "C3"}
+    for i, temperature in enumerate(COUNT_TEMPERATURES):  # each meanfield curve dashed over its count curve
+        colors[f"count temp={temperature}"] = colors[f"meanfield temp={temperature}"] = f"C{4 + i}"
+    for name in sorted(counts, key=lambda n: n.startswith("meanfield")):
+        smooth = np.convolve(counts[name], kernel, mode="valid")
         style = "--" if name.startswith("meanfield") else "-"
-        smooth = np.convolve(c, kernel, mode="valid")
-        ax.plot(items[: FIG_ITEMS - window + 1], smooth, style, label=name, linewidth=1.2)
+        ax.plot(items[: FIG_ITEMS - window + 1], smooth, style, color=colors[name], label=name, linewidth=1.2)
     harmonic = np.cumsum(1.0 / np.arange(1, FIG_ITEMS + 1))
     ax.plot(items, harmonic[-1] - np.concatenate([[0.0], harmonic[:-1]]), "k:", linewidth=1, label="uniform, expected")
     ax.set_xlabel("item i (insertion order, 0 = oldest)")
