@@ -42,6 +42,7 @@ __all__ = [
     "associative_scan_resettable_real",
     "compile_s5",
     "hippo_n_eigendecomposition",
+    "s5_parallel_real_split",
     "ssm_parameter_names",
 ]
 
@@ -179,6 +180,62 @@ def associative_scan_resettable_real(
     even_re = torch.cat((first_re, rest_re + bu_re[:, 2::2]), dim=1)
     even_im = torch.cat((first_im, rest_im + bu_im[:, 2::2]), dim=1)
     return _interleave(even_re, odd_re, length), _interleave(even_im, odd_im, length)
+
+
+def s5_parallel_real_split(
+    u: torch.Tensor,
+    keep: torch.Tensor,
+    state: torch.Tensor | None,
+    log_neg_lambda_real: torch.Tensor,
+    lambda_imag: torch.Tensor,
+    b: torch.Tensor,
+    c: torch.Tensor,
+    d: torch.Tensor,
+    log_step: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Parallel form of one S5 layer in real arithmetic only (ZOH + scan + readout, thesis 2.4.3).
+
+    The same maths as ``S5Layer.forward`` with the parameters passed in, so that one ``torch.compile``d
+    graph serves every layer of equal shape (see ``compile_s5``); Inductor does not generate code for complex
+    dtypes.
+
+    :param u: inputs ``(B, T, H)``
+    :param keep: ``1 - reset`` ``(B, T, 1)``
+    :param state: ``view_as_real`` of the state before step 0 ``(B, P, 2)``, or None
+    :param log_neg_lambda_real: ``(P,)``, ``Re(Lambda) = -exp(.)``
+    :param lambda_imag: ``(P,)``
+    :param b: ``(P, H, 2)``
+    :param c: ``(H, P, 2)``
+    :param d: ``(H,)``
+    :param log_step: ``(P,)``
+    :return: outputs ``(B, T, H)`` and the states as (real, imaginary) pairs ``(B, T, P, 2)``
+    """
+    batch, length, d_model = u.shape
+    d_state = b.shape[0]
+    # ZOH: Lambda_bar = exp(Lambda Delta); B_bar = (Lambda_bar - 1) * conj(Lambda) / |Lambda|^2 * B.
+    lam_re = -torch.exp(log_neg_lambda_real)
+    step = torch.exp(log_step)
+    magnitude, phase = torch.exp(lam_re * step), lambda_imag * step
+    bar_re, bar_im = magnitude * torch.cos(phase), magnitude * torch.sin(phase)
+    inv_norm = 1.0 / (lam_re * lam_re + lambda_imag * lambda_imag)
+    scale_re, scale_im = _complex_mul(bar_re - 1.0, bar_im, lam_re * inv_norm, -lambda_imag * inv_norm)
+    b_re, b_im = _complex_mul(scale_re.unsqueeze(-1), scale_im.unsqueeze(-1), b[..., 0], b[..., 1])
+    w_in = torch.stack((b_re, b_im), dim=1).reshape(2 * d_state, d_model)
+    w_out = torch.stack((c[..., 0], -c[..., 1]), dim=-1).reshape(d_model, 2 * d_state)
+
+    bu = F.linear(u, w_in).view(batch, length, d_state, 2)
+    states_re, states_im = associative_scan_resettable_real(
+        bar_re,
+        bar_im,
+        keep,
+        bu[..., 0],
+        bu[..., 1],
+        None if state is None else state[..., 0],
+        None if state is None else state[..., 1],
+    )
+    states = torch.stack((states_re, states_im), dim=-1)  # (B, T, P, 2)
+    y = F.linear(states.reshape(batch, length, 2 * d_state), w_out) + u * d
+    return y, states
 
 
 def _check_input(x: object, d_model: int, ndim: int, name: str = "x") -> torch.Tensor:
@@ -340,50 +397,6 @@ class S5Layer(nn.Module):
         w_out = torch.stack((self.C[..., 0], -self.C[..., 1]), dim=-1).reshape(self.d_model, 2 * self.d_state)
         return lambda_bar, w_in, w_out
 
-    def _discretize_real_split(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``discretize`` written with real arithmetic only (for ``torch.compile``).
-
-        :return: real and imaginary parts of ``Lambda_bar`` ``(P,)`` and the input weight ``(2P, H)`` as in
-            ``_real_weights``
-        """
-        lam_re, lam_im = -torch.exp(self.log_neg_lambda_real), self.lambda_imag
-        step = torch.exp(self.log_step)
-        magnitude, phase = torch.exp(lam_re * step), lam_im * step
-        bar_re, bar_im = magnitude * torch.cos(phase), magnitude * torch.sin(phase)
-        # (Lambda_bar - 1) / Lambda = (Lambda_bar - 1) * conj(Lambda) / |Lambda|^2
-        inv_norm = 1.0 / (lam_re * lam_re + lam_im * lam_im)
-        scale_re, scale_im = _complex_mul(bar_re - 1.0, bar_im, lam_re * inv_norm, -lam_im * inv_norm)
-        b_re, b_im = _complex_mul(scale_re.unsqueeze(-1), scale_im.unsqueeze(-1), self.B[..., 0], self.B[..., 1])
-        w_in = torch.stack((b_re, b_im), dim=1).reshape(2 * self.d_state, self.d_model)
-        return bar_re, bar_im, w_in
-
-    def _forward_real_split(
-        self, u: torch.Tensor, keep: torch.Tensor, state: torch.Tensor | None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Parallel form without complex dtypes (the unit that ``compile_s5`` compiles).
-
-        :param u: inputs ``(B, T, H)`` in the parameters' dtype
-        :param keep: ``1 - reset`` ``(B, T, 1)``
-        :param state: ``view_as_real`` of the initial state ``(B, P, 2)``, or None
-        :return: outputs ``(B, T, H)`` and the states as (real, imaginary) pairs ``(B, T, P, 2)``
-        """
-        batch, length, _ = u.shape
-        bar_re, bar_im, w_in = self._discretize_real_split()
-        w_out = torch.stack((self.C[..., 0], -self.C[..., 1]), dim=-1).reshape(self.d_model, 2 * self.d_state)
-        bu = F.linear(u, w_in).view(batch, length, self.d_state, 2)
-        states_re, states_im = associative_scan_resettable_real(
-            bar_re,
-            bar_im,
-            keep,
-            bu[..., 0],
-            bu[..., 1],
-            None if state is None else state[..., 0],
-            None if state is None else state[..., 1],
-        )
-        states = torch.stack((states_re, states_im), dim=-1)  # (B, T, P, 2)
-        y = F.linear(states.reshape(batch, length, 2 * self.d_state), w_out) + u * self.D
-        return y, states
-
     def _forward(
         self, x: torch.Tensor, reset: torch.Tensor, state: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -392,9 +405,18 @@ class S5Layer(nn.Module):
         with torch.autocast(device_type=x.device.type, enabled=False):
             u = x.to(self.B.dtype)
             if self.real_split:
-                core = self._forward_real_split if self._compiled_core is None else self._compiled_core
-                keep = (~reset).to(u.dtype).unsqueeze(-1)
-                y, states = core(u, keep, None if state is None else torch.view_as_real(state))
+                core = s5_parallel_real_split if self._compiled_core is None else self._compiled_core
+                y, states = core(
+                    u,
+                    (~reset).to(u.dtype).unsqueeze(-1),
+                    None if state is None else torch.view_as_real(state),
+                    self.log_neg_lambda_real,
+                    self.lambda_imag,
+                    self.B,
+                    self.C,
+                    self.D,
+                    self.log_step,
+                )
                 return y, torch.view_as_complex(states)
             lambda_bar, w_in, w_out = self._real_weights()
             bu = torch.view_as_complex(F.linear(u, w_in).view(batch, length, self.d_state, 2))  # (B, T, P)
@@ -650,10 +672,12 @@ def compile_s5(module: nn.Module, **compile_kwargs: object) -> nn.Module:
     """Opt-in ``torch.compile`` of the parallel form of every ``S5Layer`` inside ``module`` (in place).
 
     The layers switch to the real-split computation (Inductor does not generate code for complex
-    operators) and compile it with ``torch.compile(**compile_kwargs)``. Results equal the default path up to
-    float rounding. Compilation costs tens of seconds per new input shape on a CPU, so this pays off only for
-    long training runs; ``step`` stays eager. ``torch.save(module)`` of a compiled module (pickling the whole
-    object) is not supported; save the ``state_dict`` as usual.
+    operators) and compile it with ``torch.compile(**compile_kwargs)`` (``dynamic=False`` unless given).
+    Results equal the default path up to float rounding. One compiled graph per input shape is shared by all
+    layers; compiling costs tens of seconds to minutes per new shape on a CPU, past torch's recompile limit
+    (8 shapes) calls fall back to eager, and the measured CPU gain is small
+    (``python -m benchmarks.speed s5 --compile``). So this is for long runs with a fixed chunk length;
+    ``step`` stays eager. Pickling the whole compiled module is not supported; save the ``state_dict``.
 
     :param module: a module containing ``S5Layer``s (e.g. ``S5Stack``)
     :param compile_kwargs: passed to ``torch.compile`` (e.g. ``mode``, ``dynamic``)
@@ -662,7 +686,11 @@ def compile_s5(module: nn.Module, **compile_kwargs: object) -> nn.Module:
     layers = [sub for sub in module.modules() if isinstance(sub, S5Layer)]
     if not layers:
         raise ValueError(f"module {type(module).__name__} contains no S5Layer to compile")
+    # The scan's recursion is unrolled for each sequence length, so shapes are static: with dynamic shapes
+    # (torch's automatic choice after a second length) the backward failed to compile in torch 2.13.
+    compile_kwargs.setdefault("dynamic", False)
+    compiled = torch.compile(s5_parallel_real_split, **compile_kwargs)  # one graph per shape, shared by layers
     for layer in layers:
         layer.real_split = True
-        layer._compiled_core = torch.compile(layer._forward_real_split, **compile_kwargs)
+        layer._compiled_core = compiled
     return module
