@@ -1,0 +1,684 @@
+"""DreamerV3-style actor-critic trained on imagined trajectories (thesis 4.3.2, eq. 4.3, 4.6 - 4.9).
+
+One actor and up to three critics, one per reward term (``"extrinsic"``, ``"subgoal"``, ``"novelty"``). Each critic
+predicts the lambda-return of its own term as a 255-bin symlog two-hot distribution, has a slow EMA copy used as a
+regulariser, and owns a :class:`ReturnNormalizer`. The actor maximises the weighted sum of the per-term normalised
+advantages (eq. 4.3 applied at the advantage level, as in the reference and DreamerV3), with REINFORCE for discrete
+actions and backpropagation through the imagined dynamics for Box actions, plus an entropy bonus.
+
+The module knows nothing about the world model: the caller imagines a trajectory and hands in features, actions,
+per-term rewards and continue probabilities (time-major, see :meth:`ActorCritic.loss`).
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Collection, Iterator, Mapping
+
+import torch as th
+from torch import nn
+from torch.func import functional_call
+
+from sb3_hieros.nn.distributions import BoundedNormal, OneHotCategoricalST, TwoHotSymlog, symlog, symlog_bins
+from sb3_hieros.nn.networks import MLP
+
+#: Names of the reward terms, in the order of eq. 4.3.
+REWARD_TERMS = ("extrinsic", "subgoal", "novelty")
+#: Reward weights of thesis table 4.6.3 (extrinsic 1, subgoal 0.3, novelty 0.1).
+DEFAULT_REWARD_WEIGHTS: dict[str, float] = {"extrinsic": 1.0, "subgoal": 0.3, "novelty": 0.1}
+#: Names of the optional scalar actor inputs of eq. 4.6.
+EXTRA_INPUTS = ("reward", "cont", "entropy")
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Returns and their normalisation
+# --------------------------------------------------------------------------------------------------------------------
+
+
+def lambda_returns(
+    rewards: th.Tensor,
+    values: th.Tensor,
+    continues: th.Tensor,
+    bootstrap: th.Tensor,
+    discount: float = 0.997,
+    lambda_: float = 0.95,
+) -> th.Tensor:
+    r"""TD(lambda) returns of an imagined trajectory s_0 .. s_H, time-major (DreamerV3 definition).
+
+    .. math::
+        R_t = r_{t+1} + \gamma c_{t+1} \left[(1 - \lambda) v(s_{t+1}) + \lambda R_{t+1}\right], \qquad R_H = v(s_H)
+
+    for t = 0 .. H-1. The reward and continue flag of a step are those of the state it *arrives at* (s_{t+1}); the
+    reference implementation uses r(s_t), c(s_t) instead (research note 5.3 / 8.6), which is off by one.
+
+    Inputs are aligned with the returns, so the advantage is simply ``returns - values``:
+
+    :param rewards: (H, *B) ``rewards[t]`` = r_{t+1}, the reward predicted for s_{t+1}
+    :param values: (H, *B) ``values[t]`` = v(s_t); ``values[1:]`` enter the recursion, ``values[0]`` is only the
+        baseline of R_0
+    :param continues: (H, *B) ``continues[t]`` = c_{t+1} in [0, 1], the probability that the episode goes on at s_{t+1}
+    :param bootstrap: (*B) v(s_H), the value of the last imagined state
+    :param discount: gamma
+    :param lambda_: lambda in [0, 1]; 0 gives one-step TD targets, 1 Monte-Carlo returns bootstrapped at s_H
+    :return: (H, *B) returns R_0 .. R_{H-1}
+    """
+    if rewards.dim() < 1 or rewards.shape[0] < 1:
+        raise ValueError(f"rewards must have shape (H, *B) with H >= 1, got {tuple(rewards.shape)}")
+    if values.shape != rewards.shape or continues.shape != rewards.shape:
+        raise ValueError(
+            f"rewards {tuple(rewards.shape)}, values {tuple(values.shape)} and continues {tuple(continues.shape)} "
+            "must have the same (H, *B) shape"
+        )
+    if bootstrap.shape != rewards.shape[1:]:
+        raise ValueError(f"bootstrap must have shape {tuple(rewards.shape[1:])}, got {tuple(bootstrap.shape)}")
+    if not 0.0 <= lambda_ <= 1.0:
+        raise ValueError(f"lambda_ must be in [0, 1], got {lambda_}")
+    disc = discount * continues
+    next_values = th.cat([values[1:], bootstrap.unsqueeze(0)], 0)
+    inputs = rewards + disc * (1.0 - lambda_) * next_values
+    last = bootstrap
+    returns = []
+    for t in reversed(range(rewards.shape[0])):
+        last = inputs[t] + disc[t] * lambda_ * last
+        returns.append(last)
+    return th.stack(returns[::-1], 0)
+
+
+def cumulative_discount(continues: th.Tensor, discount: float = 0.997) -> th.Tensor:
+    r"""Loss weights of the imagined states, ``w_t = c_0 \prod_{j=1}^{t} \gamma c_j`` (DreamerV3).
+
+    A state after a predicted episode end gets (almost) zero weight; the start state s_0 has weight c_0.
+
+    :param continues: (H+1, *B) continue probabilities of s_0 .. s_H
+    :param discount: gamma
+    :return: (H+1, *B) detached weights
+    """
+    if discount <= 0.0:
+        raise ValueError(f"discount must be > 0, got {discount}")
+    continues = continues.detach()
+    return th.cumprod(discount * continues, 0) / discount
+
+
+class ReturnNormalizer(nn.Module):
+    """Return scale S = EMA(P_high) - EMA(P_low) of the lambda-returns, floored at ``min_scale`` (DreamerV3).
+
+    The percentiles of each batch of returns are tracked with an exponential moving average (decay 0.99, started
+    from 0 without bias correction, as in DreamerV3). Advantages are divided by ``max(min_scale, S)``, which shrinks
+    large returns but never amplifies small ones. The EMAs are persistent float buffers, saved with the model.
+
+    :param decay: EMA decay in [0, 1)
+    :param percentiles: (low, high) percentiles in [0, 100]
+    :param min_scale: floor of the scale (DreamerV3: 1)
+    """
+
+    low: th.Tensor
+    high: th.Tensor
+
+    def __init__(
+        self, decay: float = 0.99, percentiles: tuple[float, float] = (5.0, 95.0), min_scale: float = 1.0
+    ) -> None:
+        super().__init__()
+        if not 0.0 <= decay < 1.0:
+            raise ValueError(f"decay must be in [0, 1), got {decay}")
+        if not 0.0 <= percentiles[0] < percentiles[1] <= 100.0:
+            raise ValueError(f"percentiles must satisfy 0 <= low < high <= 100, got {percentiles}")
+        if min_scale <= 0.0:
+            raise ValueError(f"min_scale must be > 0, got {min_scale}")
+        self.decay = decay
+        self.percentiles = (float(percentiles[0]), float(percentiles[1]))
+        self.min_scale = min_scale
+        self.register_buffer("low", th.zeros(()))
+        self.register_buffer("high", th.zeros(()))
+
+    @th.no_grad()
+    def update(self, returns: th.Tensor) -> None:
+        """Move the percentile EMAs towards the percentiles of ``returns`` (any shape, non-empty).
+
+        :param returns: a batch of returns
+        """
+        if returns.numel() == 0:
+            raise ValueError("returns must be non-empty")
+        q = th.tensor([self.percentiles[0] / 100.0, self.percentiles[1] / 100.0], device=returns.device)
+        low, high = th.quantile(returns.detach().reshape(-1).float(), q)
+        self.low.mul_(self.decay).add_((1.0 - self.decay) * low.to(self.low.dtype))
+        self.high.mul_(self.decay).add_((1.0 - self.decay) * high.to(self.high.dtype))
+
+    def scale(self) -> th.Tensor:
+        """0-d ``max(min_scale, high - low)`` (detached)."""
+        return th.clamp(self.high - self.low, min=self.min_scale).detach()
+
+    def forward(self, returns: th.Tensor, update: bool = True) -> tuple[th.Tensor, th.Tensor]:
+        """Optionally update with ``returns``, then return the current statistics.
+
+        :param returns: a batch of returns
+        :param update: update the EMAs first
+        :return: (offset = EMA of the low percentile, scale = max(min_scale, S)), both detached 0-d tensors
+        """
+        if update:
+            self.update(returns)
+        return self.low.detach().clone(), self.scale()
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Actor input (eq. 4.6)
+# --------------------------------------------------------------------------------------------------------------------
+
+
+def _resolve_extras(use_extras: bool | Collection[str]) -> tuple[str, ...]:
+    if use_extras is True:
+        return EXTRA_INPUTS
+    if use_extras is False:
+        return ()
+    unknown = set(use_extras) - set(EXTRA_INPUTS)
+    if unknown:
+        raise ValueError(f"use_extras may only name {EXTRA_INPUTS}, got unknown {sorted(unknown)}")
+    return tuple(name for name in EXTRA_INPUTS if name in use_extras)
+
+
+def actor_input_dim(h_dim: int, z_dim: int, subgoal_dim: int = 0, use_extras: bool | Collection[str] = True) -> int:
+    """Feature size produced by :func:`actor_input`.
+
+    :param h_dim: size of the deterministic state h
+    :param z_dim: flattened size of the stochastic state z (e.g. 32 * 32)
+    :param subgoal_dim: flattened subgoal size (e.g. 8 * 8), 0 for the top level
+    :param use_extras: see :func:`actor_input`
+    :return: total feature size
+    """
+    return h_dim + z_dim + subgoal_dim + len(_resolve_extras(use_extras))
+
+
+def actor_input(
+    h: th.Tensor,
+    z: th.Tensor,
+    subgoal: th.Tensor | None = None,
+    reward: th.Tensor | None = None,
+    cont: th.Tensor | None = None,
+    prior_entropy: th.Tensor | None = None,
+    use_extras: bool | Collection[str] = True,
+) -> th.Tensor:
+    """Actor / critic input s_t = (h_t, z_t, g_t, r_t, c_t, H(p(z^_t | m_t))) of eq. 4.6, concatenated.
+
+    The scalar extras are passed through ``symlog``. Each extra can be switched off (ablation 5.3.11): ``use_extras``
+    is ``True`` (all of ``"reward"``, ``"cont"``, ``"entropy"``), ``False`` (none) or a collection of those names.
+    A disabled extra is not read (may be None); an enabled one must be given.
+
+    :param h: (*B, H) deterministic state
+    :param z: (*B, Z) or (*B, G, K) stochastic state (flattened here)
+    :param subgoal: (*B, 64) or (*B, 8, 8) subgoal from the level above, or None at the top level
+    :param reward: (*B) or (*B, 1) predicted reward
+    :param cont: (*B) or (*B, 1) predicted continue probability
+    :param prior_entropy: (*B) or (*B, 1) entropy of the prior over z
+    :param use_extras: which scalar extras to append
+    :return: (*B, F) with F = :func:`actor_input_dim`
+    """
+    if h.dim() < 1:
+        raise ValueError(f"h must have shape (*B, H), got {tuple(h.shape)}")
+    lead = h.shape[:-1]
+
+    def flat(name: str, x: th.Tensor) -> th.Tensor:
+        if x.dim() < len(lead) + 1 or x.shape[: len(lead)] != lead:
+            raise ValueError(f"{name} must have leading dims {tuple(lead)} like h, got {tuple(x.shape)}")
+        return x.reshape(*lead, -1)
+
+    parts = [h, flat("z", z)]
+    if subgoal is not None:
+        parts.append(flat("subgoal", subgoal))
+    values = {"reward": reward, "cont": cont, "entropy": prior_entropy}
+    for name in _resolve_extras(use_extras):
+        x = values[name]
+        if x is None:
+            raise ValueError(f"actor input extra '{name}' is enabled but was not given (pass it or disable it)")
+        if not (x.shape == lead or x.shape == (*lead, 1)):
+            raise ValueError(f"{name} must have shape {tuple(lead)} or {(*lead, 1)}, got {tuple(x.shape)}")
+        parts.append(symlog(x.reshape(*lead, 1).to(h.dtype)))
+    return th.cat(parts, -1)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Actor and critic
+# --------------------------------------------------------------------------------------------------------------------
+
+ActionDistribution = OneHotCategoricalST | BoundedNormal
+
+
+class Actor(nn.Module):
+    """Policy network pi(a | s) (eq. 4.6): an MLP with a one-hot categorical or bounded normal output.
+
+    * ``"discrete"``: ``action_dim`` classes; with ``action_groups = G > 1`` the action is G independent categoricals
+      of shape (G, action_dim) (the 8 x 8 subgoal of a higher level), log-prob and entropy summed over the groups.
+      Unimix and straight-through gradients, see :class:`~sb3_hieros.nn.distributions.OneHotCategoricalST`.
+    * ``"box"``: ``action_dim`` continuous actions in [-1, 1], see
+      :class:`~sb3_hieros.nn.distributions.BoundedNormal`; the policy rescales them to the env bounds.
+
+    :param feat_dim: input features (:func:`actor_input_dim`)
+    :param action_kind: ``"discrete"`` or ``"box"``
+    :param action_dim: number of classes (discrete) or of action dims (box)
+    :param action_groups: number of categoricals (discrete only)
+    :param hidden: MLP width
+    :param layers: MLP hidden layers
+    :param unimix: uniform mixture of the categorical
+    :param min_std: lower std bound of the normal
+    :param max_std: upper std bound of the normal
+    :param norm: LayerNorm in the MLP
+    :param act: activation class
+    """
+
+    def __init__(
+        self,
+        feat_dim: int,
+        action_kind: str,
+        action_dim: int,
+        action_groups: int = 1,
+        hidden: int = 256,
+        layers: int = 2,
+        unimix: float = 0.01,
+        min_std: float = 0.1,
+        max_std: float = 1.0,
+        norm: bool = True,
+        act: type[nn.Module] = nn.SiLU,
+    ) -> None:
+        super().__init__()
+        if action_kind not in ("discrete", "box"):
+            raise ValueError(f"action_kind must be 'discrete' or 'box', got {action_kind!r}")
+        if action_dim < 1 or action_groups < 1:
+            raise ValueError(f"action_dim and action_groups must be >= 1, got {action_dim}, {action_groups}")
+        if action_kind == "box" and action_groups != 1:
+            raise ValueError(f"action_groups must be 1 for box actions, got {action_groups}")
+        if action_kind == "discrete" and action_dim < 2:
+            raise ValueError(f"a discrete action needs at least 2 classes, got action_dim={action_dim}")
+        self.feat_dim = feat_dim
+        self.action_kind = action_kind
+        self.action_dim = action_dim
+        self.action_groups = action_groups
+        self.unimix = unimix
+        self.min_std = min_std
+        self.max_std = max_std
+        out = action_dim * action_groups if action_kind == "discrete" else 2 * action_dim
+        self.net = MLP(feat_dim, out, hidden, layers, norm=norm, act=act)
+
+    @property
+    def action_shape(self) -> tuple[int, ...]:
+        """Shape of one action: (K,), (G, K) or (A,)."""
+        if self.action_kind == "discrete" and self.action_groups > 1:
+            return (self.action_groups, self.action_dim)
+        return (self.action_dim,)
+
+    def forward(self, feat: th.Tensor) -> ActionDistribution:
+        """:param feat: (*B, feat_dim)
+        :return: the action distribution with batch shape *B
+        """
+        out = self.net(feat)
+        if self.action_kind == "box":
+            mean_raw, std_raw = out.chunk(2, -1)
+            return BoundedNormal(mean_raw, std_raw, self.min_std, self.max_std)
+        logits = out.reshape(*out.shape[:-1], *self.action_shape)
+        return OneHotCategoricalST(logits, self.unimix, event_ndims=1 if self.action_groups > 1 else 0)
+
+    def act(self, feat: th.Tensor, deterministic: bool = False) -> th.Tensor:
+        """Action for acting: the mode when ``deterministic`` (thesis 4.3.2: mode in the environment), else a sample.
+
+        :param feat: (*B, feat_dim)
+        :param deterministic: take the mode
+        :return: (*B, *action_shape)
+        """
+        dist = self(feat)
+        return dist.mode() if deterministic else dist.sample()
+
+
+class Critic(nn.Module):
+    """Value network v(s) with a 255-bin symlog two-hot output, zero-initialised, plus a slow EMA copy.
+
+    The slow copy is updated by :meth:`update_slow` (``slow <- (1 - f) slow + f fast`` with f = 0.02, once per
+    training step as in DreamerV3 / the reference) and regularises the critic: the loss adds
+    ``slow_reg * -log p(slow mean)`` (DreamerV3 slow-critic regulariser).
+
+    :param feat_dim: input features
+    :param hidden: MLP width
+    :param layers: MLP hidden layers
+    :param num_bins: two-hot bins (odd)
+    :param slow_fraction: EMA fraction f of :meth:`update_slow`, in (0, 1]
+    :param slow_reg: weight of the slow-critic regulariser
+    :param norm: LayerNorm in the MLP
+    :param act: activation class
+    """
+
+    bins: th.Tensor
+
+    def __init__(
+        self,
+        feat_dim: int,
+        hidden: int = 256,
+        layers: int = 2,
+        num_bins: int = 255,
+        slow_fraction: float = 0.02,
+        slow_reg: float = 1.0,
+        norm: bool = True,
+        act: type[nn.Module] = nn.SiLU,
+    ) -> None:
+        super().__init__()
+        if not 0.0 < slow_fraction <= 1.0:
+            raise ValueError(f"slow_fraction must be in (0, 1], got {slow_fraction}")
+        if slow_reg < 0.0:
+            raise ValueError(f"slow_reg must be >= 0, got {slow_reg}")
+        self.slow_fraction = slow_fraction
+        self.slow_reg = slow_reg
+        self.net = MLP(feat_dim, num_bins, hidden, layers, norm=norm, act=act, out_scale=0.0)
+        self.slow_net = copy.deepcopy(self.net).requires_grad_(False)
+        # constant: non-persistent so that it stays out of the state_dict (SB3 save/load contract)
+        self.register_buffer("bins", symlog_bins(num_bins), persistent=False)
+
+    def forward(self, feat: th.Tensor) -> TwoHotSymlog:
+        """:param feat: (*B, feat_dim)
+        :return: value distribution with batch shape *B
+        """
+        return TwoHotSymlog(self.net(feat), self.bins)
+
+    def value(self, feat: th.Tensor, detach_params: bool = False) -> th.Tensor:
+        """Expected value (raw units) of the fast critic.
+
+        :param feat: (*B, feat_dim)
+        :param detach_params: let gradients flow into ``feat`` but not into the critic's parameters (for the
+            dynamics-backprop actor loss)
+        :return: (*B)
+        """
+        if not detach_params:
+            return self(feat).mean
+        params = {name: p.detach() for name, p in self.net.named_parameters()}
+        return TwoHotSymlog(functional_call(self.net, params, (feat,)), self.bins).mean
+
+    @th.no_grad()
+    def slow_value(self, feat: th.Tensor) -> th.Tensor:
+        """Expected value of the slow copy (no gradient).
+
+        :param feat: (*B, feat_dim)
+        :return: (*B)
+        """
+        return TwoHotSymlog(self.slow_net(feat), self.bins).mean
+
+    @th.no_grad()
+    def update_slow(self, fraction: float | None = None) -> None:
+        """EMA step of the slow copy towards the fast critic.
+
+        :param fraction: EMA fraction, default ``slow_fraction``; 1.0 copies
+        """
+        f = self.slow_fraction if fraction is None else fraction
+        if not 0.0 <= f <= 1.0:
+            raise ValueError(f"fraction must be in [0, 1], got {f}")
+        for slow, fast in zip(self.slow_net.parameters(), self.net.parameters(), strict=True):
+            slow.lerp_(fast.detach(), f)
+
+    def loss(
+        self, feat: th.Tensor, target: th.Tensor, weights: th.Tensor | None = None
+    ) -> tuple[th.Tensor, dict[str, th.Tensor]]:
+        """Two-hot NLL of ``target`` plus the slow-critic regulariser, weighted and averaged.
+
+        ``feat`` and ``target`` are detached here, so only the critic's parameters get gradients.
+
+        :param feat: (*B, feat_dim)
+        :param target: (*B) regression targets (lambda-returns), raw units
+        :param weights: (*B) per-sample weights (cumulative discount), default 1
+        :return: (scalar loss, metrics)
+        """
+        feat = feat.detach()
+        dist = self(feat)
+        nll = -dist.log_prob(target.detach())
+        loss = nll
+        if self.slow_reg > 0.0:
+            loss = loss - self.slow_reg * dist.log_prob(self.slow_value(feat))
+        if weights is not None:
+            if weights.shape != nll.shape:
+                raise ValueError(f"weights must have shape {tuple(nll.shape)}, got {tuple(weights.shape)}")
+            loss = loss * weights.detach()
+        metrics = {"critic_nll": nll.mean().detach(), "value_mean": dist.mean.mean().detach()}
+        return loss.mean(), metrics
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# The actor-critic of one level
+# --------------------------------------------------------------------------------------------------------------------
+
+
+class ActorCritic(nn.Module):
+    """One actor and one critic per active reward term (thesis 4.3.2), trained on imagined trajectories.
+
+    Terms with weight 0 (or left out of ``reward_weights``) get no critic and no normaliser; the top level simply
+    passes no ``"subgoal"`` weight. The actor objective per imagined step t is (eq. 4.3 at the advantage level)
+
+    .. math::
+        A_t = \\sum_k \\alpha_k \\frac{R^k_t - v^k(s_t)}{\\max(1, S_k)}
+
+    with alpha = ``reward_weights``, R^k the lambda-returns of term k under its fast critic and S_k its return scale
+    (:class:`ReturnNormalizer`). This is a weighted *sum* as in eq. 4.3 (r = r_extr + 0.3 r_g + 0.1 r_nov); DreamerV3
+    divides by the sum of the weights, which only rescales A against the entropy bonus. Unlike the reference,
+    REINFORCE also uses the normalised advantages (research note 8.3).
+
+    * ``gradient="reinforce"`` (default for discrete): ``-w_t (log pi(a_t|s_t) sg(A_t) + eta H_t)``.
+    * ``gradient="dynamics"`` (default for box): ``-w_t (A_t + eta H_t)``, where A_t carries gradients back through
+      the rewards, values and features to the (reparameterised) actions. The caller must build ``feats`` and
+      ``rewards`` differentiably from the imagined actions; critic parameters get no gradient from this loss, but
+      whatever produced ``feats`` / ``rewards`` (the world model) does: step only the actor's optimiser with it and
+      zero the other gradients before their own backward.
+
+    with eta = ``entropy_coef`` and w_t the cumulative discount. Critic k minimises the two-hot NLL of R^k_t plus the
+    slow-critic regulariser, weighted by w_t.
+
+    :param feat_dim: actor / critic input size (:func:`actor_input_dim`)
+    :param action_kind: ``"discrete"`` or ``"box"``
+    :param action_dim: classes (discrete) or dims (box)
+    :param action_groups: number of categoricals (8 for a subgoal action)
+    :param hidden: MLP width (actor and critics)
+    :param layers: MLP hidden layers (actor and critics)
+    :param reward_weights: term -> weight alpha_k; default :data:`DEFAULT_REWARD_WEIGHTS`. Missing terms have weight 0.
+    :param discount: gamma
+    :param lambda_: lambda of the returns
+    :param entropy_coef: eta
+    :param gradient: ``"reinforce"``, ``"dynamics"`` or None (reinforce for discrete, dynamics for box)
+    :param unimix: actor unimix (discrete)
+    :param min_std: actor std lower bound (box)
+    :param max_std: actor std upper bound (box)
+    :param slow_fraction: slow-critic EMA fraction
+    :param slow_reg: slow-critic regulariser weight
+    :param retnorm_decay: return normaliser EMA decay
+    :param retnorm_percentiles: return normaliser percentiles
+    :param retnorm_min_scale: return normaliser floor
+    :param num_bins: critic two-hot bins
+    :param norm: LayerNorm in the MLPs
+    :param act: activation class
+    """
+
+    def __init__(
+        self,
+        feat_dim: int,
+        action_kind: str,
+        action_dim: int,
+        action_groups: int = 1,
+        hidden: int = 256,
+        layers: int = 2,
+        reward_weights: Mapping[str, float] | None = None,
+        discount: float = 0.997,
+        lambda_: float = 0.95,
+        entropy_coef: float = 3e-4,
+        gradient: str | None = None,
+        unimix: float = 0.01,
+        min_std: float = 0.1,
+        max_std: float = 1.0,
+        slow_fraction: float = 0.02,
+        slow_reg: float = 1.0,
+        retnorm_decay: float = 0.99,
+        retnorm_percentiles: tuple[float, float] = (5.0, 95.0),
+        retnorm_min_scale: float = 1.0,
+        num_bins: int = 255,
+        norm: bool = True,
+        act: type[nn.Module] = nn.SiLU,
+    ) -> None:
+        super().__init__()
+        weights = dict(DEFAULT_REWARD_WEIGHTS if reward_weights is None else reward_weights)
+        unknown = set(weights) - set(REWARD_TERMS)
+        if unknown:
+            raise ValueError(f"reward_weights keys must be among {REWARD_TERMS}, got unknown {sorted(unknown)}")
+        if any(w < 0 for w in weights.values()):
+            raise ValueError(f"reward_weights must be >= 0, got {weights}")
+        self.reward_weights = {k: float(weights[k]) for k in REWARD_TERMS if weights.get(k, 0.0) > 0.0}
+        if not self.reward_weights:
+            raise ValueError(f"at least one reward weight must be > 0, got {weights}")
+        if gradient is None:
+            gradient = "reinforce" if action_kind == "discrete" else "dynamics"
+        if gradient not in ("reinforce", "dynamics"):
+            raise ValueError(f"gradient must be 'reinforce', 'dynamics' or None, got {gradient!r}")
+        if not 0.0 < discount <= 1.0:
+            raise ValueError(f"discount must be in (0, 1], got {discount}")
+        if entropy_coef < 0.0:
+            raise ValueError(f"entropy_coef must be >= 0, got {entropy_coef}")
+        self.feat_dim = feat_dim
+        self.gradient = gradient
+        self.discount = discount
+        self.lambda_ = lambda_
+        self.entropy_coef = entropy_coef
+        self.actor = Actor(
+            feat_dim, action_kind, action_dim, action_groups, hidden, layers, unimix, min_std, max_std, norm, act
+        )
+        self.critics = nn.ModuleDict(
+            {
+                k: Critic(feat_dim, hidden, layers, num_bins, slow_fraction, slow_reg, norm, act)
+                for k in self.reward_weights
+            }
+        )
+        self.normalizers = nn.ModuleDict(
+            {k: ReturnNormalizer(retnorm_decay, retnorm_percentiles, retnorm_min_scale) for k in self.reward_weights}
+        )
+
+    @property
+    def active_terms(self) -> tuple[str, ...]:
+        """Reward terms with a critic, in :data:`REWARD_TERMS` order."""
+        return tuple(self.reward_weights)
+
+    def actor_parameters(self) -> Iterator[nn.Parameter]:
+        """Parameters of the actor (for the actor optimiser)."""
+        return self.actor.parameters()
+
+    def critic_parameters(self) -> Iterator[nn.Parameter]:
+        """Trainable parameters of all critics (the slow copies excluded)."""
+        for critic in self.critics.values():
+            yield from critic.net.parameters()
+
+    def act(self, feat: th.Tensor, deterministic: bool = False) -> th.Tensor:
+        """See :meth:`Actor.act`."""
+        return self.actor.act(feat, deterministic)
+
+    @th.no_grad()
+    def update_slow_critics(self, fraction: float | None = None) -> None:
+        """One EMA step of every slow critic (call once per training step)."""
+        for critic in self.critics.values():
+            critic.update_slow(fraction)
+
+    def _check_inputs(
+        self,
+        feats: th.Tensor,
+        actions: th.Tensor,
+        rewards: Mapping[str, th.Tensor],
+        continues: th.Tensor,
+        weights: th.Tensor | None,
+    ) -> None:
+        if feats.dim() < 3 or feats.shape[0] < 2 or feats.shape[-1] != self.feat_dim:
+            raise ValueError(f"feats must have shape (H+1, *B, {self.feat_dim}) with H >= 1, got {tuple(feats.shape)}")
+        states = feats.shape[:-1]  # (H+1, *B)
+        expected_actions = (states[0] - 1, *states[1:], *self.actor.action_shape)
+        if tuple(actions.shape) != expected_actions:
+            raise ValueError(
+                f"actions must have shape (H, *B, *action_shape) = {expected_actions}, got {tuple(actions.shape)}"
+            )
+        unknown = set(rewards) - set(REWARD_TERMS)
+        if unknown:
+            raise ValueError(f"rewards keys must be among {REWARD_TERMS}, got unknown {sorted(unknown)}")
+        missing = set(self.reward_weights) - set(rewards)
+        if missing:
+            raise ValueError(f"rewards lack the active terms {sorted(missing)} (active: {self.active_terms})")
+        for name, r in rewards.items():
+            if name in self.reward_weights and r.shape != states:
+                raise ValueError(f"rewards['{name}'] must have shape (H+1, *B) = {tuple(states)}, got {tuple(r.shape)}")
+        if continues.shape != states:
+            raise ValueError(f"continues must have shape (H+1, *B) = {tuple(states)}, got {tuple(continues.shape)}")
+        if weights is not None and weights.shape != states:
+            raise ValueError(f"weights must have shape (H+1, *B) = {tuple(states)}, got {tuple(weights.shape)}")
+
+    def loss(
+        self,
+        feats: th.Tensor,
+        actions: th.Tensor,
+        rewards: Mapping[str, th.Tensor],
+        continues: th.Tensor,
+        weights: th.Tensor | None = None,
+        update_normalizers: bool = True,
+    ) -> tuple[th.Tensor, th.Tensor, dict[str, th.Tensor]]:
+        """Actor and critic losses on one imagined trajectory s_0 .. s_H (time-major).
+
+        Side effect: updates each term's :class:`ReturnNormalizer` with its returns (unless ``update_normalizers`` is
+        False). Call :meth:`update_slow_critics` once per training step separately.
+
+        :param feats: (H+1, *B, feat_dim) actor / critic inputs of s_0 .. s_H (:func:`actor_input`)
+        :param actions: (H, *B, *action_shape) action a_t taken in s_t (one-hot for discrete)
+        :param rewards: term -> (H+1, *B) per-state rewards, ``rewards[k][t]`` = r^k(s_t) (for the extrinsic term the
+            reward head's prediction at s_t, i.e. the reward of arriving in s_t); index 0 is not used. Must hold every
+            active term; known terms with weight 0 are ignored.
+        :param continues: (H+1, *B) continue probabilities c(s_t); ``continues[0]`` is that of the start state
+        :param weights: (H+1, *B) loss weights; default :func:`cumulative_discount` of ``continues``
+        :param update_normalizers: update the return normalisers with this batch
+        :return: (actor_loss, critic_loss summed over the critics, metrics of detached 0-d tensors)
+        """
+        self._check_inputs(feats, actions, rewards, continues, weights)
+        if weights is None:
+            weights = cumulative_discount(continues, self.discount)
+        weights = weights.detach()
+        w = weights[:-1]  # (H, *B): one weight per action / return
+        feats_sg = feats.detach()
+        dynamics = self.gradient == "dynamics"
+        metrics: dict[str, th.Tensor] = {}
+        advantage = th.zeros_like(w)
+        critic_loss = feats.new_zeros(())
+        for name, alpha in self.reward_weights.items():
+            critic = self.critics[name]
+            if dynamics:
+                values = critic.value(feats, detach_params=True)  # (H+1, *B), differentiable w.r.t. feats
+            else:
+                with th.no_grad():
+                    values = critic.value(feats_sg)
+            returns = lambda_returns(
+                rewards[name][1:], values[:-1], continues[1:], values[-1], self.discount, self.lambda_
+            )  # (H, *B)
+            _, scale = self.normalizers[name](returns, update=update_normalizers)
+            advantage = advantage + alpha * (returns - values[:-1]) / scale
+            c_loss, c_metrics = critic.loss(feats_sg[:-1], returns.detach(), w)
+            critic_loss = critic_loss + c_loss
+            metrics[f"{name}/return_mean"] = returns.mean().detach()
+            metrics[f"{name}/reward_mean"] = rewards[name][1:].mean().detach()
+            metrics[f"{name}/return_scale"] = scale
+            metrics[f"{name}/critic_loss"] = c_loss.detach()
+            metrics[f"{name}/value_mean"] = c_metrics["value_mean"]
+        dist = self.actor(feats_sg[:-1])
+        entropy = dist.entropy()  # (H, *B)
+        if dynamics:
+            objective = advantage
+        else:
+            objective = dist.log_prob(actions.detach()) * advantage.detach()
+        actor_loss = -(w * (objective + self.entropy_coef * entropy)).mean()
+        metrics["actor_loss"] = actor_loss.detach()
+        metrics["actor_entropy"] = entropy.mean().detach()
+        metrics["advantage_mean"] = advantage.mean().detach()
+        metrics["advantage_std"] = advantage.std().detach() if advantage.numel() > 1 else advantage.new_zeros(())
+        metrics["critic_loss"] = critic_loss.detach()
+        return actor_loss, critic_loss, metrics
+
+
+__all__ = [
+    "DEFAULT_REWARD_WEIGHTS",
+    "EXTRA_INPUTS",
+    "REWARD_TERMS",
+    "Actor",
+    "ActorCritic",
+    "Critic",
+    "ReturnNormalizer",
+    "actor_input",
+    "actor_input_dim",
+    "cumulative_discount",
+    "lambda_returns",
+]
