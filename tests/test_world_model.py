@@ -441,3 +441,26 @@ def test_bad_spaces_and_config():
         make_world_model(spaces.Box(-1, 1, (3,)), 0, config)
     with pytest.raises(ValueError, match="config must be a WorldModelConfig"):
         make_world_model(spaces.Box(-1, 1, (3,)), 2, {"kind": "s5"})
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_loss_on_replay_buffer_samples(kind):
+    """The world model consumes SequenceReplayBuffer.sample() as it comes (Dreamer row layout)."""
+    from sb3_hieros.buffers import SequenceReplayBuffer
+
+    obs_space = spaces.Box(-10.0, 10.0, (3,), np.float32)
+    action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+    buffer = SequenceReplayBuffer(100, obs_space, action_space, device="cpu", n_envs=2, batch_length=6)
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(2, 3)).astype(np.float32)
+    for t in range(20):
+        next_obs = rng.normal(size=(2, 3)).astype(np.float32)
+        done = np.array([t % 7 == 6, False])
+        action = rng.uniform(-1, 1, (2, 2)).astype(np.float32)
+        buffer.add(obs, next_obs, action, np.ones(2, np.float32), done, [{}, {}])
+        obs = next_obs
+    samples = buffer.sample(4)
+    model = make_world_model(obs_space, 2, tiny_config(kind))
+    loss, _, post = model.loss(samples)
+    loss.backward()
+    assert th.isfinite(loss) and tuple(post.batch_shape) == (4, 6)

@@ -276,6 +276,19 @@ class ObservationSpec:
                 label = f"{name}[{key!r}]" if self.is_dict else name
                 raise ValueError(f"{label} has shape {tuple(value.shape)}, expected {expected}")
 
+    def preprocess(self, obs: dict[str, th.Tensor]) -> dict[str, th.Tensor]:
+        """uint8 images mapped to float ``x / 255 - 0.5`` (the encoder's input and decoder's output space); float
+        images (taken as already mapped) and vectors pass unchanged.
+
+        :param obs: dict from :meth:`as_dict`
+        :return: new dict
+        """
+        out = dict(obs)
+        for key in self.image_keys:
+            if obs[key].dtype == th.uint8:
+                out[key] = obs[key].to(th.float32).mul_(1.0 / 255.0).sub_(0.5)
+        return out
+
     def vectors(self, obs: dict[str, th.Tensor], lead: tuple[int, ...]) -> th.Tensor:
         """Concatenation of all vector entries, flattened, as float: (..., vector_dim).
 
@@ -739,14 +752,16 @@ class WorldModel(nn.Module):
         for field in ("observations", "actions", "rewards", "is_first", "is_terminal"):
             if not hasattr(samples, field):
                 raise ValueError(f"samples must have the attribute {field!r} (SequenceSamples-like)")
-        post, prior_logits = self.observe(samples.observations, samples.actions, samples.is_first, state)
+        # images are converted to x/255 - 0.5 once, for the encoder and as the decoder's target
+        obs = self.spec.preprocess(self.spec.as_dict(samples.observations))
+        observations = obs if self.spec.is_dict else obs[_SINGLE_KEY]
+        post, prior_logits = self.observe(observations, samples.actions, samples.is_first, state)
         lead = tuple(post.batch_shape)
         for field in ("rewards", "is_terminal"):
             value = getattr(samples, field)
             if not isinstance(value, th.Tensor) or tuple(value.shape) != lead:
                 shape = tuple(value.shape) if isinstance(value, th.Tensor) else type(value).__name__
                 raise ValueError(f"samples.{field} must be a tensor of shape {lead}, got {shape}")
-        obs = self.spec.as_dict(samples.observations)
         feat = self.features(post)
         with self._autocast():
             pred = self.decoder(feat)
