@@ -6,6 +6,11 @@ regulariser, and owns a :class:`ReturnNormalizer`. The actor maximises the weigh
 advantages (eq. 4.3 applied at the advantage level, as in the reference and DreamerV3), with REINFORCE for discrete
 actions and backpropagation through the imagined dynamics for Box actions, plus an entropy bonus.
 
+The thesis states its value loss as a squared TD(0) error (eq. 4.7, 4.8) and its baseline as the slow critics
+(eq. 4.9), but says that HIEROS adopts DreamerV3's actor-critic unchanged apart from the per-term critics; we follow
+DreamerV3 (and the reference): critics regress lambda-returns with the two-hot NLL, and returns and baseline come from
+the fast critics, the slow critics acting as a regulariser of the critic loss.
+
 The module knows nothing about the world model: the caller imagines a trajectory and hands in features, actions,
 per-term rewards and continue probabilities (time-major, see :meth:`ActorCritic.loss`).
 """
