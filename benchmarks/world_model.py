@@ -8,8 +8,8 @@ Parts (``--parts a,b,c,d``):
     data) relative to "repeat the last observed observation". Goal < 0.5.
 (b) world-model fwd+bwd per update (``loss`` + ``backward``), S5WM vs RSSM at equal widths with the same encoder and
     heads, timed interleaved: ``small`` preset at batch 16 x 64 with CartPole-sized vector observations (goal >= 2x),
-    and ``paper`` preset at T=64 with 64x64x3 images and 18 actions, fp32 eager, bf16 eager and bf16 + compile
-    (goal >= 1.3x).
+    and ``paper`` preset at T=64 with 64x64x3 images and 18 actions: fp32 eager, fp32 + compile, and bf16 eager /
+    bf16 + compile where the CPU has native bf16 (goal >= 1.3x).
 (c) imagination of 1024 starts x 16 steps (no_grad, a 2-layer MLP actor included), S5 step vs RSSM step, for both
     presets. Goal: S5 at most 1.2x slower.
 (d) achieved GFLOP/s of one ``paper``-size level-0 S5WM update (FLOPs counted with ``FlopCounterMode``, matmul and
@@ -255,9 +255,16 @@ def part_b(args: argparse.Namespace) -> None:
     space = spaces.Box(0, 255, (3, 64, 64), np.uint8)
     batch = synthetic_batch(16, 64, (3, 64, 64), 18, image=True)
     reps = 2 if args.quick else 4
-    modes = [("fp32", False, False), ("bf16", True, False)]
+    modes = [("fp32", False, False)]
     if not args.no_compile:
-        modes.append(("bf16_compile", True, True))
+        modes.append(("fp32_compile", False, True))
+    if bf16_hardware() or args.force_bf16:
+        modes.append(("bf16", True, False))
+        if not args.no_compile:
+            modes.append(("bf16_compile", True, True))
+    else:
+        print("  bf16 modes skipped: this CPU has no avx512_bf16 / amx_bf16 (bf16 would be emulated, far slower)")
+        record("b_paper_bf16_rssm_over_s5", "skipped (no bf16 hardware)")
     print(f"\n(b) paper preset, batch 16 x 64, images (3, 64, 64), 18 actions, {reps} reps per mode")
     for mode, bf16, compile in modes:
         models = {kind: build(kind, config, space, 18, bf16=bf16, compile=compile) for kind in ("s5", "rssm")}
@@ -325,6 +332,16 @@ def part_c(args: argparse.Namespace) -> None:
 # ----------------------------------------------------------------------------------------------------------------------
 
 
+def bf16_hardware() -> bool:
+    """Whether the CPU has native bf16 matmul support (AVX512-BF16 or AMX); without it bf16 autocast is emulated."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((line for line in f if line.startswith("flags")), "").split()
+    except OSError:
+        return False
+    return "avx512_bf16" in flags or "amx_bf16" in flags
+
+
 def matmul_peak(reps: int = 10) -> float:
     a, b = th.randn(4096, 1024), th.randn(1024, 1024)
     for _ in range(3):
@@ -346,7 +363,8 @@ def part_d(args: argparse.Namespace) -> None:
     batch = synthetic_batch(16, 64, (3, 64, 64), 18, image=True)
     print("\n(d) achieved GFLOP/s of one paper-size S5WM update (fp32 eager, batch 16 x 64, images 64x64x3)")
     peak_before = matmul_peak()
-    for mode, bf16 in (("fp32", False), ("bf16", True)):
+    modes = [("fp32", False)] + ([("bf16", True)] if bf16_hardware() or args.force_bf16 else [])
+    for mode, bf16 in modes:
         model = build("s5", config, space, 18, bf16=bf16)
         optimizer = world_model_optimizer(model)
 
@@ -380,7 +398,8 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="fewer updates and repetitions")
     parser.add_argument("--updates", type=int, default=None, help="training updates of part (a)")
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
-    parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile variant of part (b)")
+    parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile variants of part (b)")
+    parser.add_argument("--force-bf16", action="store_true", help="run bf16 variants even without bf16 hardware")
     args = parser.parse_args()
     if args.threads is not None:
         th.set_num_threads(args.threads)

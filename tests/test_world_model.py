@@ -152,9 +152,15 @@ def test_imagine_shapes_and_no_inplace(kind):
     assert acts.shape == (horizon + 1, n, 2)
     assert entropy.shape == (horizon + 1, n)
     assert th.all(entropy >= 0)
-    assert_states_close(states.select(0), before, atol=0.0)
+    assert_states_close(states.select(0)._replace(seq=before.seq), before, atol=0.0)
     assert_states_close(start, before, atol=0.0)  # start not overwritten (note 8.7)
-    assert states.seq.shape[2:] == start.seq.shape[1:]
+    assert states.seq.shape == (horizon + 1, n, 0)  # recurrent memory not kept by default
+    full, _, _ = model.imagine(start, policy, horizon, deterministic=True, keep_seq=True)
+    assert full.seq.shape[2:] == start.seq.shape[1:]
+    assert_states_close(full.select(0), before, atol=0.0)
+    again, _, _ = model.imagine(start, policy, horizon, deterministic=True)
+    assert_states_close(again._replace(seq=full.seq), full, atol=0.0)
+    assert model.training  # mode restored
     # imagined z are one-hot per group
     groups = states.stoch.reshape(horizon + 1, n, model.groups, model.classes)
     assert th.all(groups.sum(-1) == 1)
@@ -177,7 +183,7 @@ def test_imagination_gradients_flow_through_recurrent_state(kind):
 
     # the RSSM's recurrent memory is its deterministic state (seq and deter are one tensor)
     start = start._replace(seq=seq0, deter=seq0) if kind == "rssm" else start._replace(seq=seq0)
-    states, _, _ = model.imagine(start, policy, 5)
+    states, _, _ = model.imagine(start, policy, 5, keep_seq=True)
     states.deter[-1].sum().backward()
     # memory of the sequence model is not detached between steps (note 3.7)
     assert seq0.grad is not None and seq0.grad.abs().sum() > 0
@@ -464,3 +470,15 @@ def test_loss_on_replay_buffer_samples(kind):
     loss, _, post = model.loss(samples)
     loss.backward()
     assert th.isfinite(loss) and tuple(post.batch_shape) == (4, 6)
+
+
+def test_imagination_without_dropout():
+    """With dropout in the S5 blocks, imagination with prior modes is still deterministic (dropout is off there)."""
+    model = vector_model("s5", dropout=0.5)
+    obs, actions, is_first = random_chunk(2, 3)
+    post, _ = model.observe(obs, actions, is_first)
+    start = post.flatten_batch().detach()
+    first, _, _ = model.imagine(start, lambda s: th.zeros(6, 2), 4, deterministic=True)
+    second, _, _ = model.imagine(start, lambda s: th.zeros(6, 2), 4, deterministic=True)
+    assert th.equal(first.deter, second.deter)
+    assert model.training

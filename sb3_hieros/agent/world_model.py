@@ -35,8 +35,8 @@ Design decisions (documented deviations from the public reference code, hieros_r
 Optional speed opt-ins (off by default): ``bf16=True`` runs encoder, decoder, heads and the dense layers around the
 sequence model under CPU/GPU bfloat16 autocast (the S5 scan and its complex state stay in fp32; the RSSM time loop
 stays in fp32 because casting tiny per-step matmuls costs more than it saves, perf_anchors.md 2.6), and
-``compile=True`` wraps the sequence model's parallel and step functions (S5WM) or the loop cell (RSSM) in
-``torch.compile``.
+``compile=True`` compiles the S5 parallel scan (``compile_s5``; the step form stays eager) or the RSSM loop cell
+with ``torch.compile`` (tens of seconds of compilation per new chunk shape).
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ from sb3_hieros.nn.distributions import (
     symlog_mse,
 )
 from sb3_hieros.nn.networks import MLP, ConvDecoder, ConvEncoder, preprocess_image, trunc_normal_init_
-from sb3_hieros.nn.s5 import S5Stack
+from sb3_hieros.nn.s5 import S5Stack, compile_s5
 
 __all__ = [
     "LatentState",
@@ -862,16 +862,22 @@ class WorldModel(nn.Module):
         policy: Callable[[LatentState], th.Tensor],
         horizon: int,
         deterministic: bool = False,
+        keep_seq: bool = False,
     ) -> tuple[LatentState, th.Tensor, th.Tensor]:
         """Roll the world model forward from ``start`` with actions from ``policy`` (thesis 4.4.3, Figure 4.7).
 
         Step form; the recurrent state is not detached between steps and ``start`` is not modified, so gradients can
-        flow back through the whole rollout (dynamics backpropagation for Box actions).
+        flow back through the whole rollout (dynamics backpropagation for Box actions). The world model runs without
+        dropout here (dropout regularises the world-model loss only; the rollout is then a function of the sampled
+        latents alone), and its training mode is restored afterwards.
 
         :param start: start states of batch shape (N,) (e.g. ``post.flatten_batch()``)
         :param policy: state (N,) -> action (N, A); ``actions[i]`` is the action taken in ``states[i]``
         :param horizon: number of imagined steps H
         :param deterministic: take prior modes instead of samples
+        :param keep_seq: also return the recurrent memory of every imagined state. Off by default: nothing downstream
+            (heads, actor-critic, subgoal autoencoder) reads it, and for S5WM it is the largest field ((L, P) complex
+            per state); the returned ``states.seq`` is then an empty (H+1, N, 0) tensor
         :return: states (H+1, N) including ``start``, actions (H+1, N, A) and prior entropies (H+1, N)
         """
         if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
@@ -889,17 +895,26 @@ class WorldModel(nn.Module):
                 raise ValueError(f"policy must return actions of shape {(n, self.action_dim)}, got {shape}")
             return action
 
-        states = [start]
-        actions = []
-        state = start
-        for _ in range(horizon):
-            action = act(state)
-            actions.append(action)
-            state, _ = self.img_step(state, action, deterministic)
-            states.append(state)
-        actions.append(act(state))
-        trajectory = stack_states(states, 0)
-        return trajectory, th.stack(actions, 0), self.prior_entropy(trajectory)
+        empty_seq = start.seq.new_zeros(n, 0)
+
+        def stored(state: LatentState) -> LatentState:
+            return state if keep_seq else state._replace(seq=empty_seq)
+
+        was_training = self.training
+        self.train(False)
+        try:
+            states, actions, entropies = [stored(start)], [], [self.prior_entropy(start)]
+            state = start
+            for _ in range(horizon):
+                action = act(state)
+                actions.append(action)
+                state, _ = self.img_step(state, action, deterministic)
+                states.append(stored(state))
+                entropies.append(self.prior_entropy(state))
+            actions.append(act(state))
+        finally:
+            self.train(was_training)
+        return stack_states(states, 0), th.stack(actions, 0), th.stack(entropies, 0)
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -915,7 +930,8 @@ class S5WorldModel(WorldModel):
     :param action_dim: size of the action vector
     :param config: world-model hyperparameters (``kind == "s5"``)
     :param bf16: bfloat16 autocast opt-in
-    :param compile: ``torch.compile`` the S5 stack's parallel and step functions
+    :param compile: ``torch.compile`` the S5 stack's parallel scan (``sb3_hieros.nn.s5.compile_s5``; the step form
+        used for acting and imagination stays eager)
     """
 
     kind = "s5"
@@ -937,11 +953,11 @@ class S5WorldModel(WorldModel):
         trunc_normal_init_(self.deter_out)
         self.prior_net = MLP(c.s5_model_dim, self.stoch_dim, c.hidden, layers=1)
         self.post_net = MLP(self.embed_dim, self.stoch_dim, c.hidden, layers=1)
+        if compile:
+            # the S5 module's own opt-in: real-split parallel scan under torch.compile; the step form stays eager
+            compile_s5(self.sequence_model)
         self._seq_forward: Callable[..., tuple[th.Tensor, th.Tensor]] = self.sequence_model.forward
         self._seq_step: Callable[..., tuple[th.Tensor, th.Tensor]] = self.sequence_model.step
-        if compile:
-            self._seq_forward = th.compile(self.sequence_model.forward)
-            self._seq_step = th.compile(self.sequence_model.step)
 
     def no_weight_decay_parameters(self) -> list[nn.Parameter]:
         """SSM parameters of the S5 stack (Lambda, B, Delta) plus all 1-d parameters.
