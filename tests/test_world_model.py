@@ -482,3 +482,12 @@ def test_imagination_without_dropout():
     second, _, _ = model.imagine(start, lambda s: th.zeros(6, 2), 4, deterministic=True)
     assert th.equal(first.deter, second.deter)
     assert model.training
+
+
+def test_grouped_kl_matches_categorical_kl():
+    from sb3_hieros.agent.world_model import _grouped_kl
+    from sb3_hieros.nn.distributions import categorical_kl
+
+    log_p = th.log_softmax(th.randn(3, 5, 4, 6), -1)
+    log_q = th.log_softmax(th.randn(3, 5, 4, 6), -1)
+    assert th.allclose(_grouped_kl(log_p, log_q), categorical_kl(log_p, log_q), atol=1e-6)

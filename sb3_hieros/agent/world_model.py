@@ -35,8 +35,9 @@ Design decisions (documented deviations from the public reference code, hieros_r
 Optional speed opt-ins (off by default): ``bf16=True`` runs encoder, decoder, heads and the dense layers around the
 sequence model under CPU/GPU bfloat16 autocast (the S5 scan and its complex state stay in fp32; the RSSM time loop
 stays in fp32 because casting tiny per-step matmuls costs more than it saves, perf_anchors.md 2.6), and
-``compile=True`` compiles the S5 parallel scan (``compile_s5``; the step form stays eager) or the RSSM loop cell
-with ``torch.compile`` (tens of seconds of compilation per new chunk shape).
+``compile=True`` compiles the convolutional encoder/decoder and the S5 parallel scan (``compile_s5``; the step form
+stays eager) or the RSSM loop cell with ``torch.compile`` (tens of seconds of compilation per new input shape; save
+the ``state_dict``, not the pickled module).
 """
 
 from __future__ import annotations
@@ -58,7 +59,6 @@ from sb3_hieros.nn.distributions import (
     ContinueBernoulli,
     OneHotCategoricalST,
     TwoHotSymlog,
-    categorical_kl,
     symexp,
     symlog,
     symlog_bins,
@@ -304,6 +304,15 @@ class ObservationSpec:
         return parts[0] if len(parts) == 1 else th.cat(parts, -1)
 
 
+def _grouped_kl(log_p: th.Tensor, log_q: th.Tensor) -> th.Tensor:
+    """``KL(p || q)`` summed over groups and classes, for already normalised log-probabilities (..., G, K).
+
+    Same value as :func:`~sb3_hieros.nn.distributions.categorical_kl`, without re-normalising inputs that the world
+    model keeps normalised (``LatentState.logits`` / ``prior_logits``).
+    """
+    return (log_p.exp() * (log_p - log_q)).sum((-2, -1))
+
+
 class _SquaredError(th.autograd.Function):
     """``((pred - target) ** 2).sum((-3, -2, -1))`` in one subtraction and one reduction pass, with a one-pass backward
     ``2 * (pred - target) * grad`` (no gradient to the target). Saves several full passes over the image batch
@@ -507,7 +516,7 @@ class WorldModel(nn.Module):
     :param action_dim: size of the action vector (one-hot size for Discrete actions and subgoals, Box dims)
     :param config: world-model hyperparameters
     :param bf16: run matmul/conv-heavy parts under bfloat16 autocast (opt-in, see the module docstring)
-    :param compile: ``torch.compile`` the sequence model (opt-in)
+    :param compile: ``torch.compile`` the convolution stacks and the sequence model (opt-in)
     """
 
     kind: str = ""
@@ -542,6 +551,10 @@ class WorldModel(nn.Module):
         self.reward_head = MLP(self.feat_dim, REWARD_BINS, config.head_units, config.head_layers, out_scale=0.0)
         self.cont_head = MLP(self.feat_dim, 1, config.head_units, config.head_layers)
         self.register_buffer("reward_bins", symlog_bins(REWARD_BINS), persistent=False)
+        if compile:
+            # convolution stacks: Inductor fuses the per-pixel LayerNorm and SiLU around the oneDNN convolutions
+            for conv in [*self.encoder.convs.values(), *self.decoder.convs.values()]:
+                conv.forward = th.compile(conv.forward, dynamic=False)
 
     # ---------------------------------------------------------------- small helpers
 
@@ -809,8 +822,8 @@ class WorldModel(nn.Module):
         reward_nll = -TwoHotSymlog(reward_logits.float(), self.reward_bins).log_prob(samples.rewards.float())
         cont_target = 1.0 - samples.is_terminal.float()
         cont_nll = -ContinueBernoulli(cont_logits.float().squeeze(-1)).log_prob(cont_target)
-        kl_dyn = categorical_kl(post.logits.detach(), prior_logits)  # (B, T), summed over groups
-        kl_rep = categorical_kl(post.logits, prior_logits.detach())
+        kl_dyn = _grouped_kl(post.logits.detach(), prior_logits)  # (B, T), summed over groups
+        kl_rep = _grouped_kl(post.logits, prior_logits.detach())
         free = self.config.free_bits
         dyn = kl_dyn.clamp(min=free)
         rep = kl_rep.clamp(min=free)
