@@ -20,7 +20,8 @@ Design decisions (documented deviations from the public reference code, hieros_r
 
 * S5WM ``h_t`` (``deter_from="state"``, thesis 5.3.5) is ``symlog(Linear([Re x_t, Im x_t]))`` over the complex
   states x_t of all S5 layers. The reference reads out ``Re`` only; the imaginary part carries the phase of the
-  rotating modes, so both parts are used (the read-out Linear doubles its input width, a negligible cost).
+  rotating modes, so both parts are used (the read-out Linear doubles its input width: negligible in training,
+  about 10 % of an imagination step at paper width).
   With ``deter_from="output"`` it is ``symlog(Linear(m_t))``.
 * The posterior of S5WM is computed from the observation embedding only (thesis 4.4.2), so a whole chunk is
   encoded in one batched pass; the S5 stack then runs once in its parallel form.
@@ -29,12 +30,15 @@ Design decisions (documented deviations from the public reference code, hieros_r
 * The RSSM uses DreamerV3's LayerNorm GRU (one Linear over ``[x, h]``, LayerNorm, update-gate bias -1) and the
   "optimized" loop of perf_anchors.md 2.4: the embedding half of the posterior layer, the action half of the
   input layer and the whole prior head are computed outside the time loop, which iterates with ``unbind(1)``.
+* Imagination runs without dropout and by default does not keep the recurrent memory of imagined states
+  (``imagine(keep_seq=True)`` does); image convolutions run in the channels-last memory format.
 * Actions enter as float vectors (one-hot for discrete actions and subgoals, [-1, 1] for Box). DreamerV3's
   ``a / max(1, |a|)`` rescaling is the identity on such inputs and is therefore not applied.
 
 Optional speed opt-ins (off by default): ``bf16=True`` runs encoder, decoder, heads and the dense layers around the
 sequence model under CPU/GPU bfloat16 autocast (the S5 scan and its complex state stay in fp32; the RSSM time loop
-stays in fp32 because casting tiny per-step matmuls costs more than it saves, perf_anchors.md 2.6), and
+stays in fp32 because casting tiny per-step matmuls costs more than it saves, perf_anchors.md 2.6); only useful on
+CPUs with native bf16 (AVX512-BF16 / AMX), elsewhere it is emulated and many times slower. And
 ``compile=True`` compiles the convolutional encoder/decoder and the S5 parallel scan (``compile_s5``; the step form
 stays eager) or the RSSM loop cell with ``torch.compile`` (tens of seconds of compilation per new input shape; save
 the ``state_dict``, not the pickled module).
