@@ -1,0 +1,184 @@
+"""Speed benchmarks, one argparse subcommand per table.
+
+``python -m benchmarks.speed s5`` times forward+backward of the resettable S5 layer (thesis 4.4.2) against
+recurrent baselines and against the scan style of the public HIEROS reference implementation, following the
+protocol of research note perf_anchors.md section 5.1 (``benchmarks/_timing.py``): all variants of one
+sequence length run interleaved round-robin in one process after warm-ups; min and median are reported.
+The last lines print each speed ratio (baseline median / ours median) as ``name: value``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import nn
+
+from benchmarks._timing import Timing, environment_header, format_ms, time_interleaved
+from sb3_hieros.nn.s5 import S5Layer, S5Stack, _interleave, associative_scan_resettable
+
+Elements = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+def _reference_style_combine(earlier: Elements, later: Elements) -> Elements:
+    """Resettable S5 combine as the reference implementation does it (research note hieros_reference.md 3.3).
+
+    Elements are (transition A, input Bu, reset flag d). If the later segment contains a reset, it is returned
+    unchanged; otherwise the usual (A_j A_i, A_j b_i + b_j) with the earlier flag. Three ``torch.where``.
+    """
+    a_i, b_i, d_i = earlier
+    a_j, b_j, d_j = later
+    has_reset = d_j > 0
+    return (
+        torch.where(has_reset, a_j, a_j * a_i),
+        torch.where(has_reset, b_j, a_j * b_i + b_j),
+        torch.where(has_reset, d_j, d_i),
+    )
+
+
+def reference_style_scan(elements: Elements) -> Elements:
+    """Generic odd/even associative scan over (A, Bu, d) triples along dim 1, every component combined.
+
+    Written for this benchmark from the description of the reference's scan (a port of the
+    ``jax.lax.associative_scan`` recursion that scans the full triples, with a full-size ``(B, T, P)`` transition
+    tensor); it is the baseline, not the implementation we use.
+
+    :param elements: A ``(B, T, P)`` complex, Bu ``(B, T, P)`` complex, d ``(B, T, 1)`` float
+    :return: inclusive prefix combination of the triples; its second component holds the states
+    """
+    length = elements[0].shape[1]
+    if length < 2:
+        return elements
+    reduced = _reference_style_combine(
+        tuple(e[:, 0:-1:2] for e in elements),  # type: ignore[arg-type]
+        tuple(e[:, 1::2] for e in elements),  # type: ignore[arg-type]
+    )
+    odd = reference_style_scan(reduced)
+    left = odd if length % 2 == 1 else tuple(o[:, :-1] for o in odd)
+    even_rest = _reference_style_combine(left, tuple(e[:, 2::2] for e in elements))  # type: ignore[arg-type]
+    even = tuple(torch.cat((e[:, :1], r), dim=1) for e, r in zip(elements, even_rest, strict=True))
+    return tuple(_interleave(e, o, length) for e, o in zip(even, odd, strict=True))  # type: ignore[return-value]
+
+
+def _fwd_bwd(fn: Callable[[], torch.Tensor]) -> Callable[[], None]:
+    def run() -> None:
+        out = fn()
+        if out.is_complex():
+            out = torch.view_as_real(out)
+        out.sum().backward()
+
+    return run
+
+
+def s5_variants(length: int, batch: int, d_model: int, d_state: int, n_blocks: int, n_stack: int, seed: int):
+    """Forward+backward callables of every variant for one sequence length.
+
+    :return: name -> zero-argument callable
+    """
+    torch.manual_seed(seed)
+    x = torch.randn(batch, length, d_model, requires_grad=True)
+    reset = torch.rand(batch, length) < 0.02
+    reset[:, length // 2] = True  # at least one episode border per sequence
+
+    layer = S5Layer(d_model, d_state, n_blocks)
+    stack = S5Stack(n_stack, d_model, d_state, n_blocks)
+    cell = nn.GRUCell(d_model, d_model)
+    gru = nn.GRU(d_model, d_model, batch_first=True)
+
+    def gru_cell_loop() -> torch.Tensor:
+        h = x.new_zeros(batch, d_model)
+        outs = []
+        for x_t in x.unbind(1):
+            h = cell(x_t, h)
+            outs.append(h)
+        return torch.stack(outs, dim=1)
+
+    # Scan kernel only, same inputs for both: x_t = (1 - reset_t) Lambda_bar x_{t-1} + Bu_t.
+    with torch.no_grad():
+        lambda_bar0, _ = layer.discretize()
+    lambda_bar_param = torch.view_as_real(lambda_bar0).clone().requires_grad_(True)
+    bu_param = torch.randn(batch, length, d_state, 2, requires_grad=True)
+    keep = (~reset).float().unsqueeze(-1)
+    flag = reset.float().unsqueeze(-1)
+
+    def ours_scan() -> torch.Tensor:
+        return associative_scan_resettable(
+            torch.view_as_complex(lambda_bar_param), keep, torch.view_as_complex(bu_param)
+        )
+
+    def reference_scan() -> torch.Tensor:
+        bu = torch.view_as_complex(bu_param)
+        transition = torch.view_as_complex(lambda_bar_param).expand(batch, length, d_state)
+        return reference_style_scan((transition, bu, flag))[1]
+
+    return {
+        "S5Layer": _fwd_bwd(lambda: layer(x, reset)[0]),
+        "GRUCell loop": _fwd_bwd(gru_cell_loop),
+        "nn.GRU (fused)": _fwd_bwd(lambda: gru(x)[0]),
+        "scan (ours)": _fwd_bwd(ours_scan),
+        "scan (reference style)": _fwd_bwd(reference_scan),
+        f"S5Stack ({n_stack} layers)": _fwd_bwd(lambda: stack(x, reset)[0]),
+    }
+
+
+def run_s5(args: argparse.Namespace) -> None:
+    """``s5`` subcommand: S5 layer, scan and stack timings; prints ratios last."""
+    print(environment_header())
+    print(
+        f"fwd+bwd, B={args.batch}, H={args.d_model}, P={args.d_state}, J={args.n_blocks}, "
+        f"warmup={args.warmup}, reps={args.reps} (interleaved), times min / median"
+    )
+    ratios: dict[str, float] = {}
+    for length in args.lengths:
+        variants = s5_variants(
+            length, args.batch, args.d_model, args.d_state, args.n_blocks, args.stack_layers, args.seed
+        )
+        timings: dict[str, Timing] = time_interleaved(variants, warmup=args.warmup, reps=args.reps)
+        print(f"\nT={length}")
+        for name, timing in timings.items():
+            print(f"  {name:<24} {format_ms(timing)}")
+        s5 = timings["S5Layer"].median
+        ratios[f"s5_vs_grucell_T{length}"] = timings["GRUCell loop"].median / s5
+        ratios[f"s5_vs_gru_fused_T{length}"] = timings["nn.GRU (fused)"].median / s5
+        ratios[f"scan_vs_reference_scan_T{length}"] = (
+            timings["scan (reference style)"].median / timings["scan (ours)"].median
+        )
+        stack_name = f"S5Stack ({args.stack_layers} layers)"
+        ratios[f"s5stack{args.stack_layers}_ms_T{length}"] = timings[stack_name].median * 1e3
+    print("\nratios (baseline median / ours median; s5stack*_ms is the stack's median in ms):")
+    for name, value in ratios.items():
+        print(f"{name}: {value:.2f}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Argument parser with one subcommand per benchmark table."""
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.speed", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    s5 = sub.add_parser("s5", help="S5 layer vs GRU baselines, our scan vs the reference scan style, S5 stack")
+    s5.add_argument("--reps", type=int, default=20, help="timed repetitions per variant (default 20)")
+    s5.add_argument("--warmup", type=int, default=3, help="untimed warm-up calls per variant (default 3)")
+    s5.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
+    s5.add_argument("--lengths", type=int, nargs="+", default=[64, 256], help="sequence lengths T")
+    s5.add_argument("--batch", type=int, default=16)
+    s5.add_argument("--d-model", type=int, default=256)
+    s5.add_argument("--d-state", type=int, default=128)
+    s5.add_argument("--n-blocks", type=int, default=4)
+    s5.add_argument("--stack-layers", type=int, default=8)
+    s5.add_argument("--seed", type=int, default=0)
+    s5.set_defaults(func=run_s5)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
+    if getattr(args, "threads", None) is not None:
+        if args.threads < 1:
+            raise ValueError(f"--threads must be >= 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
+    args.func(args)
+
+
+if __name__ == "__main__":
+    main()

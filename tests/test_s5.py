@@ -1,0 +1,326 @@
+import io
+
+import pytest
+import torch
+from stable_baselines3.common.save_util import load_from_zip_file, save_to_zip_file
+
+from sb3_hieros.nn.s5 import (
+    S5Block,
+    S5Layer,
+    S5Stack,
+    associative_scan_resettable,
+    hippo_n_eigendecomposition,
+    ssm_parameter_names,
+)
+
+H, P, J = 12, 8, 2
+ATOL = 1e-4
+
+
+@pytest.fixture(autouse=True)
+def _seed():
+    torch.manual_seed(0)
+
+
+def _inputs(batch=3, length=9, reset_prob=0.25):
+    x = torch.randn(batch, length, H)
+    reset = torch.rand(batch, length) < reset_prob
+    return x, reset
+
+
+def _random_state(*shape):
+    return torch.randn(*shape, dtype=torch.complex64)
+
+
+def _step_loop(module, x, reset, state):
+    ys, states = [], []
+    for x_t, r_t in zip(x.unbind(1), reset.unbind(1), strict=True):
+        y_t, state = module.step(x_t, state, r_t)
+        ys.append(y_t)
+        states.append(state)
+    return torch.stack(ys, dim=1), torch.stack(states, dim=1)
+
+
+def _max_abs(a, b):
+    return (a - b).abs().max().item()
+
+
+@pytest.mark.parametrize("length", [1, 2, 3, 8, 13, 64])
+@pytest.mark.parametrize("with_state", [False, True])
+def test_layer_parallel_matches_step(length, with_state):
+    layer = S5Layer(H, P, J)
+    x, reset = _inputs(length=length)
+    state = _random_state(3, P) if with_state else None
+    y, states = layer(x, reset, state)
+    assert y.shape == (3, length, H) and y.dtype == torch.float32
+    assert states.shape == (3, length, P) and states.dtype == torch.complex64
+    y_step, states_step = _step_loop(layer, x, reset, state)
+    assert _max_abs(y, y_step) <= ATOL
+    assert _max_abs(states, states_step) <= ATOL
+
+
+@pytest.mark.parametrize("length", [1, 5, 16, 33])
+def test_scan_matches_sequential_recurrence(length):
+    lambda_bar = torch.exp(torch.complex(-torch.rand(P), torch.randn(P)))
+    keep = (torch.rand(2, length, 1) > 0.3).float()
+    bu = torch.randn(2, length, P, dtype=torch.complex64)
+    x0 = _random_state(2, P)
+    out = associative_scan_resettable(lambda_bar, keep, bu, x0)
+    state, expected = x0, []
+    for t in range(length):
+        state = keep[:, t] * lambda_bar * state + bu[:, t]
+        expected.append(state)
+    assert _max_abs(out, torch.stack(expected, dim=1)) <= ATOL
+
+
+@pytest.mark.parametrize("module_cls", [S5Layer, S5Block])
+def test_reset_makes_suffix_independent_of_prefix(module_cls):
+    module = module_cls(H, P, J)
+    x, _ = _inputs(length=10)
+    reset = torch.zeros(3, 10, dtype=torch.bool)
+    t0 = 4
+    reset[:, t0] = True
+    state = _random_state(3, P)
+    y, states = module(x, reset, state)
+    y_fresh, states_fresh = module(x[:, t0:], reset[:, t0:])
+    assert _max_abs(y[:, t0:], y_fresh) <= 1e-5
+    assert _max_abs(states[:, t0:], states_fresh) <= 1e-5
+    # Without the reset the prefix does leak into the suffix.
+    y_no_reset, _ = module(x, torch.zeros_like(reset), state)
+    assert _max_abs(y_no_reset[:, t0:], y_fresh) > 1e-4
+    # The prefix before the reset is unaffected by the reset.
+    assert _max_abs(y[:, :t0], y_no_reset[:, :t0]) <= 1e-6
+
+
+def test_reset_at_zero_ignores_given_state():
+    layer = S5Layer(H, P, J)
+    x, reset = _inputs(length=7)
+    reset[:, 0] = True
+    y_a, s_a = layer(x, reset, _random_state(3, P))
+    y_b, s_b = layer(x, reset, None)
+    assert _max_abs(y_a, y_b) <= 1e-6
+    assert _max_abs(s_a, s_b) <= 1e-6
+    # and the step form agrees
+    y_step, _ = layer.step(x[:, 0], _random_state(3, P), reset[:, 0])
+    assert _max_abs(y_step, y_b[:, 0]) <= 1e-6
+
+
+@pytest.mark.parametrize("split", [1, 6, 10])
+def test_chunked_equals_whole_layer(split):
+    layer = S5Layer(H, P, J)
+    x, reset = _inputs(length=11)
+    y, states = layer(x, reset)
+    y1, s1 = layer(x[:, :split], reset[:, :split])
+    y2, s2 = layer(x[:, split:], reset[:, split:], s1[:, -1])
+    assert _max_abs(torch.cat([y1, y2], 1), y) <= ATOL
+    assert _max_abs(torch.cat([s1, s2], 1), states) <= ATOL
+
+
+def test_chunked_equals_whole_stack():
+    stack = S5Stack(3, H, P, J)
+    x, reset = _inputs(length=12)
+    initial = _random_state(3, 3, P)
+    y, states = stack(x, reset, initial)
+    y1, s1 = stack(x[:, :5], reset[:, :5], initial)
+    y2, s2 = stack(x[:, 5:], reset[:, 5:], s1[:, -1])
+    assert _max_abs(torch.cat([y1, y2], 1), y) <= ATOL
+    assert _max_abs(torch.cat([s1, s2], 1), states) <= ATOL
+
+
+def test_stack_shapes_and_step_agreement():
+    stack = S5Stack(3, H, P, J, dropout=0.1).eval()
+    assert stack.state_size == 3 * P
+    init = stack.initial_state(4)
+    assert init.shape == (4, 3, P) and init.dtype == torch.complex64 and not init.any()
+    x, reset = _inputs(batch=4, length=9)
+    state = _random_state(4, 3, P)
+    y, states = stack(x, reset, state)
+    assert y.shape == (4, 9, H) and states.shape == (4, 9, 3, P) and states.dtype == torch.complex64
+    y_step, states_step = _step_loop(stack, x, reset, state)
+    assert _max_abs(y, y_step) <= ATOL
+    assert _max_abs(states, states_step) <= ATOL
+    # state None == zeros; reset None == no reset
+    y0, s0 = stack.step(x[:, 0], None, None)
+    y0b, s0b = stack.step(x[:, 0], init, torch.zeros(4, dtype=torch.bool))
+    assert torch.equal(y0, y0b) and torch.equal(s0, s0b)
+
+
+def test_block_shapes_and_step_agreement():
+    block = S5Block(H, P, J)
+    x, reset = _inputs(length=6)
+    y, states = block(x, reset)
+    assert y.shape == x.shape and states.shape == (3, 6, P)
+    y_step, states_step = _step_loop(block, x, reset, None)
+    assert _max_abs(y, y_step) <= ATOL
+    assert _max_abs(states, states_step) <= ATOL
+
+
+def test_gradients_reach_every_parameter():
+    stack = S5Stack(2, H, P, J)
+    x, reset = _inputs(length=9)
+    x.requires_grad_(True)
+    state = _random_state(3, 2, P).requires_grad_(True)
+    y, states = stack(x, reset, state)
+    (y.square().mean() + torch.view_as_real(states).square().mean()).backward()
+    for name, param in stack.named_parameters():
+        assert param.grad is not None, name
+        assert torch.isfinite(param.grad).all(), name
+        assert param.grad.abs().sum() > 0, name
+    assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+    assert torch.isfinite(torch.view_as_real(state.grad)).all() and state.grad.abs().sum() > 0
+
+
+def test_long_sequence_stays_finite():
+    stack = S5Stack(2, H, P, J)
+    x = 3.0 * torch.randn(2, 2048, H)
+    reset = torch.zeros(2, 2048, dtype=torch.bool)
+    y, states = stack(x, reset)
+    assert torch.isfinite(y).all()
+    assert torch.isfinite(torch.view_as_real(states)).all()
+    y.mean().backward()
+    assert all(torch.isfinite(p.grad).all() for p in stack.parameters())
+
+
+def test_state_dict_is_real_without_constant_buffers():
+    stack = S5Stack(2, H, P, J)
+    sd = stack.state_dict()
+    assert all(v.is_floating_point() for v in sd.values())
+    assert set(sd) == {name for name, _ in stack.named_parameters()} | {
+        name for name, _ in stack.named_buffers() if name in sd
+    }
+    assert not [name for name, _ in stack.named_buffers() if name in sd]
+
+
+def test_save_load_roundtrip_torch(tmp_path):
+    stack = S5Stack(2, H, P, J)
+    x, reset = _inputs()
+    expected, expected_states = stack(x, reset)
+    buffer = io.BytesIO()
+    torch.save(stack.state_dict(), buffer)
+    buffer.seek(0)
+    other = S5Stack(2, H, P, J)
+    other.load_state_dict(torch.load(buffer, weights_only=True))
+    y, states = other(x, reset)
+    assert torch.equal(y, expected) and torch.equal(states, expected_states)
+
+
+def test_save_load_roundtrip_sb3_zip(tmp_path):
+    stack = S5Stack(2, H, P, J)
+    optimizer = torch.optim.AdamW(stack.parameters(), lr=1e-3, weight_decay=0.1)
+    x, reset = _inputs()
+    stack(x, reset)[0].sum().backward()
+    optimizer.step()
+    expected, _ = stack(x, reset)
+    path = tmp_path / "model.zip"
+    save_to_zip_file(path, data={}, params={"policy": stack.state_dict(), "policy.optimizer": optimizer.state_dict()})
+    _, params, _ = load_from_zip_file(path, device="cpu")
+    other = S5Stack(2, H, P, J)
+    other.load_state_dict(params["policy"])
+    other_opt = torch.optim.AdamW(other.parameters(), lr=1e-3, weight_decay=0.1)
+    other_opt.load_state_dict(params["policy.optimizer"])
+    y, _ = other(x, reset)
+    assert torch.equal(y, expected)
+    y.sum().backward()
+    other_opt.step()  # the restored optimizer keeps working
+
+
+def test_adamw_weight_decay_and_clipping_keep_lambda_stable():
+    stack = S5Stack(2, H, P, J)
+    ssm_names = set(ssm_parameter_names(stack))
+    named = dict(stack.named_parameters())
+    assert ssm_names <= set(named)
+    assert {id(p) for p in stack.ssm_parameters()} == {id(named[n]) for n in ssm_names}
+    groups = [
+        {"params": [p for n, p in named.items() if n in ssm_names], "weight_decay": 0.0},
+        {"params": [p for n, p in named.items() if n not in ssm_names]},
+    ]
+    optimizer = torch.optim.AdamW(groups, lr=0.5, weight_decay=0.1)
+    x, reset = _inputs()
+    for _ in range(5):
+        optimizer.zero_grad()
+        y, _ = stack(x, reset)
+        # Push Re(Lambda) upwards as hard as possible, besides a normal loss.
+        lam_real = sum(block.s5.eigenvalues().real.sum() for block in stack.blocks)
+        (y.square().mean() - 100.0 * lam_real).backward()
+        norm = torch.nn.utils.clip_grad_norm_(stack.parameters(), max_norm=1.0)
+        assert torch.isfinite(norm)
+        optimizer.step()
+    for block in stack.blocks:
+        assert (block.s5.eigenvalues().real < 0).all()
+    y, states = stack(x, reset)
+    assert torch.isfinite(y).all() and torch.isfinite(torch.view_as_real(states)).all()
+
+
+def test_ssm_parameter_names_in_nested_module():
+    outer = torch.nn.Sequential(torch.nn.Linear(2, 2), S5Layer(H, P, J))
+    assert ssm_parameter_names(outer) == ["1.log_neg_lambda_real", "1.lambda_imag", "1.B", "1.log_step"]
+
+
+def test_hippo_n_initialisation():
+    eigenvalues, v = hippo_n_eigendecomposition(8)
+    assert torch.allclose(eigenvalues.real, torch.full((8,), -0.5, dtype=torch.float64))
+    assert torch.allclose(v.conj().T @ v, torch.eye(8, dtype=torch.complex128), atol=1e-10)
+    n = torch.arange(8, dtype=torch.float64)
+    legs = -torch.tril(torch.outer(torch.sqrt(2 * n + 1), torch.sqrt(2 * n + 1)), -1) - torch.diag(n + 1)
+    normal = legs + torch.outer(torch.sqrt(n + 0.5), torch.sqrt(n + 0.5))
+    rebuilt = v @ torch.diag(eigenvalues) @ v.conj().T
+    assert torch.allclose(rebuilt, normal.to(torch.complex128), atol=1e-9)
+    layer = S5Layer(16, 16, n_blocks=2)
+    lam = layer.eigenvalues().detach()
+    assert torch.allclose(lam[:8], lam[8:])  # J identical blocks
+    assert (lam.real < 0).all()
+
+
+def test_initialisation_scales():
+    layer = S5Layer(64, 64, 4, dt_min=1e-3, dt_max=1e-1)
+    step = torch.exp(layer.log_step.detach())
+    assert (step >= 1e-3 * 0.999).all() and (step <= 1e-1 * 1.001).all()
+    c_std = layer.C.detach().std().item()
+    assert 0.5 / 64**0.5 < c_std < 2.0 / 64**0.5  # not the reference's accidentally tiny C
+    lambda_bar, _ = layer.discretize()
+    assert (lambda_bar.abs() < 1).all()
+
+
+def test_autocast_keeps_complex64_state():
+    stack = S5Stack(2, H, P, J)
+    x, reset = _inputs()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        y, states = stack(x, reset)
+    assert states.dtype == torch.complex64 and torch.isfinite(y).all()
+
+
+def test_bad_d_state_blocks():
+    with pytest.raises(ValueError, match="divisible"):
+        S5Layer(H, 10, n_blocks=3)
+
+
+def _bad_calls():
+    layer = S5Layer(H, P, J)
+    stack = S5Stack(2, H, P, J)
+    x, reset = _inputs()
+    nan_x = x.clone()
+    nan_x[0, 1, 2] = float("nan")
+    return [
+        ("x", lambda: layer(x[0], reset)),
+        ("x", lambda: layer(x[..., :-1], reset)),
+        ("x", lambda: layer(nan_x, reset)),
+        ("x", lambda: layer(x.long(), reset)),
+        ("reset", lambda: layer(x, reset[:, :-1])),
+        ("reset", lambda: layer(x, reset[:2])),
+        ("reset", lambda: layer(x, reset.float())),
+        ("state", lambda: layer(x, reset, _random_state(3, P + 1))),
+        ("state", lambda: layer(x, reset, torch.zeros(3, P))),
+        ("x", lambda: layer.step(x, None, None)),
+        ("reset", lambda: layer.step(x[:, 0], None, reset)),
+        ("state", lambda: layer.step(x[:, 0], _random_state(2, P), None)),
+        ("state", lambda: stack(x, reset, _random_state(3, P))),
+        ("state", lambda: stack.step(x[:, 0], _random_state(3, 3, P))),
+        ("x", lambda: stack.step(nan_x[:, 1], None)),
+    ]
+
+
+@pytest.mark.parametrize("index", range(15))
+def test_bad_inputs_raise_value_error(index):
+    name, call = _bad_calls()[index]
+    with pytest.raises(ValueError, match=rf"^{name}\b"):
+        call()

@@ -1,0 +1,443 @@
+"""Tests of the world models (thesis 4.4): S5WM and RSSM behind one interface."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+
+from sb3_hieros.agent.world_model import (
+    LatentState,
+    RSSMWorldModel,
+    S5WorldModel,
+    cat_states,
+    make_world_model,
+    stack_states,
+    world_model_lr_scheduler,
+    world_model_optimizer,
+)
+from sb3_hieros.config import WorldModelConfig
+
+KINDS = ("s5", "rssm")
+TINY = dict(
+    s5_layers=2,
+    s5_model_dim=16,
+    s5_state_dim=8,
+    s5_hippo_blocks=2,
+    dropout=0.0,
+    deter_dim=16,
+    stoch_groups=4,
+    stoch_classes=4,
+    hidden=16,
+    cnn_depth=2,
+    mlp_units=16,
+    mlp_layers=1,
+    head_units=16,
+    head_layers=1,
+)
+
+
+def tiny_config(kind: str, **changes) -> WorldModelConfig:
+    return WorldModelConfig(kind=kind, **{**TINY, **changes})
+
+
+def vector_model(kind: str, obs_dim: int = 3, action_dim: int = 2, **changes):
+    th.manual_seed(0)
+    space = spaces.Box(-10.0, 10.0, (obs_dim,), np.float32)
+    return make_world_model(space, action_dim, tiny_config(kind, **changes))
+
+
+def random_chunk(batch: int, length: int, obs_dim: int = 3, action_dim: int = 2, reset_at: tuple = ()):
+    obs = th.randn(batch, length, obs_dim)
+    actions = th.randn(batch, length, action_dim).clamp(-1, 1)
+    is_first = th.zeros(batch, length, dtype=th.bool)
+    is_first[:, 0] = True
+    for b, t in reset_at:
+        is_first[b, t] = True
+    actions[is_first] = 0.0
+    return obs, actions, is_first
+
+
+def assert_states_close(a: LatentState, b: LatentState, atol: float = 1e-5) -> None:
+    for name, x, y in zip(LatentState._fields, a, b, strict=True):
+        assert x.shape == y.shape, name
+        assert th.allclose(x, y, atol=atol), f"{name}: max diff {(x - y).abs().max()}"
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_factory_selects_kind(kind):
+    model = vector_model(kind)
+    assert isinstance(model, S5WorldModel if kind == "s5" else RSSMWorldModel)
+    assert model.kind == kind
+    assert model.feat_dim == TINY["deter_dim"] + TINY["stoch_groups"] * TINY["stoch_classes"]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_observe_matches_obs_step_with_resets(kind):
+    model = vector_model(kind)
+    obs, actions, is_first = random_chunk(3, 12, reset_at=((1, 5), (2, 7), (2, 8)))
+    # two consecutive chunks, the second continuing from the last state of the first
+    post_a, prior_a = model.observe(obs[:, :6], actions[:, :6], is_first[:, :6], deterministic=True)
+    post_b, prior_b = model.observe(
+        obs[:, 6:], actions[:, 6:], is_first[:, 6:], state=post_a.select((slice(None), -1)), deterministic=True
+    )
+    post = cat_states([post_a, post_b], 1)
+    prior = th.cat([prior_a, prior_b], 1)
+    state = None
+    for t in range(obs.shape[1]):
+        state = model.obs_step(state, obs[:, t], actions[:, t], is_first[:, t], deterministic=True)
+        assert_states_close(state, post.select((slice(None), t)))
+        assert th.allclose(state.prior_logits, prior[:, t], atol=1e-5)
+    assert th.equal(post.prior_logits, prior)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_reset_equals_fresh_start(kind):
+    model = vector_model(kind)
+    obs, actions, is_first = random_chunk(2, 6, reset_at=((0, 3), (1, 3)))
+    post, _ = model.observe(obs, actions, is_first, deterministic=True)
+    # a state after a reset equals the successor of a fresh initial state
+    fresh = model.obs_step(None, obs[:, 3], th.randn(2, 2), th.ones(2, dtype=th.bool), deterministic=True)
+    from_initial = model.obs_step(
+        model.initial_state(2), obs[:, 3], th.zeros(2, 2), th.zeros(2, dtype=th.bool), deterministic=True
+    )
+    assert_states_close(post.select((slice(None), 3)), fresh)
+    assert_states_close(fresh, from_initial)
+    # the garbage carried into the reset step does not matter
+    busy = post.select((slice(None), 2))
+    after_busy = model.obs_step(busy, obs[:, 3], th.randn(2, 2), th.ones(2, dtype=th.bool), deterministic=True)
+    assert_states_close(after_busy, fresh)
+    # and the observe chunk restarted at row 3 gives the same later states
+    post_restart, _ = model.observe(obs[:, 3:], actions[:, 3:], is_first[:, 3:], deterministic=True)
+    assert_states_close(post.select((slice(None), slice(3, None))), post_restart)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_action_alignment(kind):
+    """Row t holds a_{t-1}: changing a_t (the action taken after o_t) changes nothing up to step t."""
+    model = vector_model(kind)
+    obs, actions, is_first = random_chunk(2, 8)
+    post, prior = model.observe(obs, actions, is_first, deterministic=True)
+    t = 4
+    changed = actions.clone()
+    changed[:, t + 1] = -changed[:, t + 1] + 0.7  # a_t lives in row t+1
+    post2, prior2 = model.observe(obs, changed, is_first, deterministic=True)
+    assert th.equal(prior[:, : t + 1], prior2[:, : t + 1])
+    assert th.equal(post.deter[:, : t + 1], post2.deter[:, : t + 1])
+    assert not th.allclose(post.deter[:, t + 1], post2.deter[:, t + 1])
+    assert not th.allclose(prior[:, t + 1], prior2[:, t + 1])
+    # the same pairing in imagination: img_step(s_t, a_t) gives the state of row t+1
+    nxt, nxt_prior = model.img_step(post.select((slice(None), t)), actions[:, t + 1], deterministic=True)
+    assert th.allclose(nxt.deter, post.deter[:, t + 1], atol=1e-5)
+    assert th.allclose(nxt_prior, prior[:, t + 1], atol=1e-5)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_imagine_shapes_and_no_inplace(kind):
+    model = vector_model(kind)
+    obs, actions, is_first = random_chunk(2, 5)
+    post, _ = model.observe(obs, actions, is_first)
+    start = post.flatten_batch()
+    before = start.map_fields(th.clone)
+    horizon, n = 4, 10
+
+    def policy(state: LatentState) -> th.Tensor:
+        return th.tanh(state.deter[:, :2])
+
+    states, acts, entropy = model.imagine(start, policy, horizon)
+    assert tuple(states.batch_shape) == (horizon + 1, n)
+    assert acts.shape == (horizon + 1, n, 2)
+    assert entropy.shape == (horizon + 1, n)
+    assert th.all(entropy >= 0)
+    assert_states_close(states.select(0), before, atol=0.0)
+    assert_states_close(start, before, atol=0.0)  # start not overwritten (note 8.7)
+    assert states.seq.shape[2:] == start.seq.shape[1:]
+    # imagined z are one-hot per group
+    groups = states.stoch.reshape(horizon + 1, n, model.groups, model.classes)
+    assert th.all(groups.sum(-1) == 1)
+    assert th.allclose(acts[1], policy(states.select(1)))
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_imagination_gradients_flow_through_recurrent_state(kind):
+    model = vector_model(kind)
+    obs, actions, is_first = random_chunk(2, 3)
+    post, _ = model.observe(obs, actions, is_first)
+    start = post.flatten_batch().detach()
+    seq0 = start.seq.clone().requires_grad_(True)
+    first_action = th.zeros(6, 2, requires_grad=True)
+    calls = []
+
+    def policy(state: LatentState) -> th.Tensor:
+        calls.append(1)
+        return first_action if len(calls) == 1 else th.tanh(state.deter[:, :2])
+
+    # the RSSM's recurrent memory is its deterministic state (seq and deter are one tensor)
+    start = start._replace(seq=seq0, deter=seq0) if kind == "rssm" else start._replace(seq=seq0)
+    states, _, _ = model.imagine(start, policy, 5)
+    states.deter[-1].sum().backward()
+    # memory of the sequence model is not detached between steps (note 3.7)
+    assert seq0.grad is not None and seq0.grad.abs().sum() > 0
+    # dynamics backpropagation reaches the first action through five steps
+    assert first_action.grad is not None and first_action.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_gradients_reach_all_parts(kind):
+    model = vector_model(kind)
+    obs, actions, is_first = random_chunk(2, 6, reset_at=((0, 3),))
+    samples = SimpleNamespace(
+        observations=obs,
+        actions=actions,
+        rewards=th.randn(2, 6),
+        is_first=is_first,
+        is_terminal=th.zeros(2, 6, dtype=th.bool),
+    )
+    loss, metrics, post = model.loss(samples)
+    assert th.isfinite(loss) and loss.dim() == 0
+    assert set(metrics) >= {"loss", "obs_loss", "reward_loss", "cont_loss", "kl", "dyn_loss", "rep_loss"}
+    assert all(isinstance(v, float) for v in metrics.values())
+    assert tuple(post.batch_shape) == (2, 6)
+    loss.backward()
+    parts = {
+        "encoder": model.encoder,
+        "decoder": model.decoder,
+        "reward_head": model.reward_head,
+        "cont_head": model.cont_head,
+        "prior_net": model.prior_net,
+        "inp": model.inp,
+    }
+    if kind == "s5":
+        parts.update(sequence_model=model.sequence_model, post_net=model.post_net, deter_out=model.deter_out)
+        ssm = list(model.sequence_model.ssm_parameters())
+        assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in ssm)
+    else:
+        parts.update(gru=model.gru, post_out=model.post_out, post_embed=model.post_embed)
+    for name, module in parts.items():
+        grads = [p.grad for p in module.parameters() if p.grad is not None]
+        assert grads and any(g.abs().sum() > 0 for g in grads), name
+
+
+def cycling_samples(batch: int, length: int, generator: th.Generator):
+    """A deterministic toy world: position s in {0..3} moves by 1 + a each step; obs = one-hot(s) scaled."""
+    pos = th.randint(0, 4, (batch,), generator=generator)
+    choice = th.randint(0, 2, (batch, length), generator=generator)
+    obs, acts, rews = [], [], []
+    prev = th.zeros(batch, 2)
+    for t in range(length):
+        obs.append(th.nn.functional.one_hot(pos, 4).float() * 2.0 - 0.5)
+        acts.append(prev)
+        rews.append((pos == 0).float())
+        prev = th.nn.functional.one_hot(choice[:, t], 2).float()
+        pos = (pos + 1 + choice[:, t]) % 4
+    is_first = th.zeros(batch, length, dtype=th.bool)
+    is_first[:, 0] = True
+    return SimpleNamespace(
+        observations=th.stack(obs, 1),
+        actions=th.stack(acts, 1),
+        rewards=th.stack(rews, 1),
+        is_first=is_first,
+        is_terminal=th.zeros(batch, length),
+    )
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_learns_toy_world_and_predicts_open_loop(kind):
+    th.manual_seed(1)
+    model = make_world_model(
+        spaces.Box(-1.0, 2.0, (4,), np.float32), 2, tiny_config(kind, deter_dim=32, hidden=32, mlp_units=32, lr=3e-3)
+    )
+    optimizer = world_model_optimizer(model)
+    gen = th.Generator().manual_seed(0)
+    first = None
+    for _ in range(100):
+        metrics, _ = model.train_step(cycling_samples(8, 12, gen), optimizer)
+        first = metrics if first is None else first
+    final = np.mean([model.loss(cycling_samples(8, 12, gen))[1]["loss"] for _ in range(3)])
+    assert final < 0.5 * first["loss"], (first["loss"], final)
+    # open loop: observe 4 steps, then imagine 8 with the recorded actions
+    test = cycling_samples(32, 12, gen)
+    context, horizon = 4, 8
+    with th.no_grad():
+        post, _ = model.observe(
+            test.observations[:, :context], test.actions[:, :context], test.is_first[:, :context], deterministic=True
+        )
+        step = iter(range(context, context + horizon + 1))
+
+        def replay_actions(state: LatentState) -> th.Tensor:
+            t = next(step)
+            return test.actions[:, t] if t < test.actions.shape[1] else th.zeros(32, 2)
+
+        states, _, _ = model.imagine(post.select((slice(None), -1)), replay_actions, horizon, deterministic=True)
+        pred = model.decode(states.select(slice(1, None)))  # (H, B, 4)
+    truth = test.observations[:, context : context + horizon].transpose(0, 1)
+    model_err = (pred - truth).pow(2).mean()
+    repeat_err = (test.observations[:, context - 1].unsqueeze(0) - truth).pow(2).mean()
+    assert model_err < 0.5 * repeat_err, (model_err, repeat_err)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("size", [64, 40])
+def test_image_observations(kind, size):
+    th.manual_seed(0)
+    space = spaces.Box(0, 255, (3, size, size), np.uint8)
+    model = make_world_model(space, 3, tiny_config(kind))
+    obs = th.randint(0, 256, (2, 3, 3, size, size), dtype=th.uint8)
+    actions = th.nn.functional.one_hot(th.randint(0, 3, (2, 3)), 3).float()
+    is_first = th.tensor([[True, False, False], [True, False, True]])
+    samples = SimpleNamespace(
+        observations=obs, actions=actions, rewards=th.zeros(2, 3), is_first=is_first, is_terminal=th.zeros(2, 3)
+    )
+    loss, _, post = model.loss(samples)
+    loss.backward()
+    assert th.isfinite(loss)
+    decoded = model.decode(post)
+    assert decoded.shape == (2, 3, 3, size, size)
+    assert decoded.min() >= 0 and decoded.max() <= 255
+    state = model.obs_step(None, obs[:, 0], actions[:, 0], is_first[:, 0])
+    assert tuple(state.batch_shape) == (2,)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_dict_observations(kind):
+    th.manual_seed(0)
+    space = spaces.Dict(
+        {"image": spaces.Box(0, 255, (1, 16, 16), np.uint8), "vec": spaces.Box(-1, 1, (2, 3), np.float32)}
+    )
+    model = make_world_model(space, 2, tiny_config(kind))
+    obs = {"image": th.randint(0, 256, (2, 4, 1, 16, 16), dtype=th.uint8), "vec": th.randn(2, 4, 2, 3)}
+    _, actions, is_first = random_chunk(2, 4)
+    post, _ = model.observe(obs, actions, is_first)
+    decoded = model.decode(post)
+    assert decoded["image"].shape == (2, 4, 1, 16, 16) and decoded["vec"].shape == (2, 4, 2, 3)
+    samples = SimpleNamespace(
+        observations=obs, actions=actions, rewards=th.zeros(2, 4), is_first=is_first, is_terminal=th.zeros(2, 4)
+    )
+    loss, _, _ = model.loss(samples)
+    loss.backward()
+    assert model.encoder.convs["image"].net[0].weight.grad.abs().sum() > 0
+    assert model.encoder.mlp.hidden[0].weight.grad.abs().sum() > 0
+    step_obs = {k: v[:, 0] for k, v in obs.items()}
+    assert tuple(model.obs_step(None, step_obs, actions[:, 0], is_first[:, 0]).batch_shape) == (2,)
+    with pytest.raises(ValueError, match="lacks the keys"):
+        model.observe({"image": obs["image"]}, actions, is_first)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_heads_and_helpers(kind):
+    model = vector_model(kind)
+    obs, actions, is_first = random_chunk(2, 5)
+    post, _ = model.observe(obs, actions, is_first)
+    assert model.features(post).shape == (2, 5, model.feat_dim)
+    assert model.reward(post).shape == (2, 5)
+    assert th.allclose(model.reward(post), th.zeros(2, 5))  # zero-initialised reward output
+    cont = model.cont(post)
+    assert cont.shape == (2, 5) and th.all((cont >= 0) & (cont <= 1))
+    assert model.decode(post).shape == (2, 5, 3)
+    flat = post.flatten_batch()
+    assert tuple(flat.batch_shape) == (10,)
+    assert_states_close(flat.reshape_batch(2, 5), post, atol=0.0)
+    stacked = stack_states([post.select((slice(None), 0)), post.select((slice(None), 1))], 1)
+    assert_states_close(stacked, post.select((slice(None), slice(0, 2))), atol=0.0)
+    keep = th.tensor([True, False])
+    masked = post.select((slice(None), 4)).masked(keep)
+    assert all(th.count_nonzero(field[1]) == 0 for field in masked)
+    assert th.equal(masked.deter[0], post.deter[0, 4])
+    with pytest.raises(ValueError, match="batch shape"):
+        post.masked(keep)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_optimizer_groups(kind):
+    model = vector_model(kind, weight_decay=0.1)
+    optimizer = world_model_optimizer(model)
+    decay, no_decay = optimizer.param_groups
+    assert decay["weight_decay"] == 0.1 and no_decay["weight_decay"] == 0.0
+    assert len(decay["params"]) + len(no_decay["params"]) == len(list(model.parameters()))
+    no_decay_ids = {id(p) for p in no_decay["params"]}
+    if kind == "s5":
+        assert all(id(p) in no_decay_ids for p in model.sequence_model.ssm_parameters())
+    assert all(p.dim() >= 2 for p in decay["params"])
+    scheduler = world_model_lr_scheduler(optimizer, warmup=4)
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(model.config.lr / 4)
+    for _ in range(5):
+        optimizer.step()
+        scheduler.step()
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(model.config.lr)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_bf16_autocast_opt_in(kind):
+    th.manual_seed(0)
+    model = make_world_model(spaces.Box(0, 255, (3, 16, 16), np.uint8), 2, tiny_config(kind), bf16=True)
+    obs = th.randint(0, 256, (2, 4, 3, 16, 16), dtype=th.uint8)
+    _, actions, is_first = random_chunk(2, 4)
+    samples = SimpleNamespace(
+        observations=obs, actions=actions, rewards=th.ones(2, 4), is_first=is_first, is_terminal=th.zeros(2, 4)
+    )
+    loss, _, post = model.loss(samples)
+    loss.backward()
+    assert th.isfinite(loss) and loss.dtype == th.float32
+    assert post.deter.dtype == th.float32 and post.logits.dtype == th.float32
+    states, _, _ = model.imagine(post.flatten_batch(), lambda s: th.zeros(8, 2), 2)
+    assert states.deter.dtype == th.float32
+
+
+def test_deter_from_output():
+    model = vector_model("s5", deter_from="output")
+    obs, actions, is_first = random_chunk(2, 4)
+    post, _ = model.observe(obs, actions, is_first, deterministic=True)
+    state = None
+    for t in range(4):
+        state = model.obs_step(state, obs[:, t], actions[:, t], is_first[:, t], deterministic=True)
+    assert_states_close(state, post.select((slice(None), 3)))
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_bad_inputs(kind):
+    model = vector_model(kind)
+    obs, actions, is_first = random_chunk(2, 4)
+    with pytest.raises(ValueError, match=r"observations has shape \(2, 4, 5\)"):
+        model.observe(th.randn(2, 4, 5), actions, is_first)
+    with pytest.raises(ValueError, match=r"observations has shape \(3, 4, 3\)"):
+        model.observe(th.randn(3, 4, 3), actions, is_first)
+    with pytest.raises(ValueError, match="prev_actions must have shape"):
+        model.observe(obs, th.randn(2, 4, 3), is_first)
+    with pytest.raises(ValueError, match=r"is_first has shape \(2, 3\)"):
+        model.observe(obs, actions, is_first[:, :3])
+    with pytest.raises(ValueError, match=r"observations must be a torch\.Tensor"):
+        model.observe(obs.numpy(), actions, is_first)
+    with pytest.raises(ValueError, match="prev_action must have shape"):
+        model.obs_step(None, obs[:, 0], actions, is_first[:, 0])
+    with pytest.raises(ValueError, match="must be a float tensor"):
+        model.obs_step(None, obs[:, 0], actions[:, 0].long(), is_first[:, 0])
+    with pytest.raises(ValueError, match="state has batch shape"):
+        model.obs_step(model.initial_state(3), obs[:, 0], actions[:, 0], is_first[:, 0])
+    post, _ = model.observe(obs, actions, is_first)
+    with pytest.raises(ValueError, match="batch shape \\(N,\\)"):
+        model.imagine(post, lambda s: th.zeros(8, 2), 2)
+    with pytest.raises(ValueError, match="policy must return actions of shape"):
+        model.imagine(post.flatten_batch(), lambda s: th.zeros(8, 3), 2)
+    with pytest.raises(ValueError, match="horizon"):
+        model.imagine(post.flatten_batch(), lambda s: th.zeros(8, 2), 0)
+    with pytest.raises(ValueError, match=r"samples\.rewards"):
+        model.loss(
+            SimpleNamespace(
+                observations=obs, actions=actions, rewards=th.zeros(2), is_first=is_first, is_terminal=th.zeros(2, 4)
+            )
+        )
+
+
+def test_bad_spaces_and_config():
+    config = tiny_config("s5")
+    with pytest.raises(ValueError, match="channel-first"):
+        make_world_model(spaces.Box(0, 255, (16, 16, 3), np.uint8), 2, config)
+    with pytest.raises(ValueError, match="must be a gymnasium Box"):
+        make_world_model(spaces.Discrete(4), 2, config)
+    with pytest.raises(ValueError, match="action_dim must be a positive int"):
+        make_world_model(spaces.Box(-1, 1, (3,)), 0, config)
+    with pytest.raises(ValueError, match="config must be a WorldModelConfig"):
+        make_world_model(spaces.Box(-1, 1, (3,)), 2, {"kind": "s5"})
