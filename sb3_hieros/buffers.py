@@ -1,0 +1,535 @@
+"""Sequence replay buffers for HIEROS: chunks of consecutive steps in the Dreamer row convention.
+
+Storage convention
+------------------
+Each env has its own **stream** of rows (a ring of ``buffer_size // n_envs`` rows) and its own write head.
+Row t of a stream is one step in the Dreamer view:
+
+========================  ==================================================================
+``observations[t]``       o_t (the observation dtype is kept: uint8 images stay uint8)
+``actions[t]``            a_{t-1}, the action that led to o_t (0 where ``is_first``)
+``rewards[t]``            r_t, the reward received on arriving at o_t (0 where ``is_first``), float32
+``is_first[t]``           o_t is the first observation of an episode (bool)
+``is_terminal[t]``        o_t is a terminal observation (bool; a time-limit truncation is not terminal)
+``subgoals[t]``           g_t, the subgoal in force at o_t (float32, only if ``subgoal_shape`` is given)
+========================  ==================================================================
+
+:meth:`SequenceReplayBuffer.add_step` writes such a row directly (for HIEROS's higher levels).
+:meth:`SequenceReplayBuffer.add` takes SB3's transition ``(o_t, o_{t+1}, a_t, r_{t+1}, done_{t+1}, infos)`` from
+``OffPolicyAlgorithm._store_transition`` and turns it into rows:
+
+* if the stream starts a new episode (first call, ``done`` in the previous call, or ``obs`` differs from the
+  stream's last stored observation, e.g. after ``learn()`` reset the env), it first writes the row
+  ``(o_t, 0, 0, is_first=True, is_terminal=False, g_t)``; otherwise it writes ``g_t`` into the stream's last row,
+  which already holds o_t;
+* it then writes ``(o_{t+1}, a_t, r_{t+1}, is_first=False, is_terminal=done and not truncated, g_t)``; the
+  subgoal there is provisional and is replaced by the next call's ``g_{t+1}``.
+
+So every observation is stored exactly once (no separate next-observation array), and an episode of L
+transitions takes L + 1 rows: the reset observation and the terminal observation each get a row of their own,
+the terminal one with its reward and ``is_terminal``. SB3's ``_store_transition`` already puts the true
+terminal observation (``infos[i]["terminal_observation"]``, unnormalised under VecNormalize) into ``next_obs``
+at ``done``, and that is what is stored. Because episode starts cost an extra row, streams drift apart; each
+has its own write head (``stream_pos``). ``pos`` and ``full`` mirror stream 0 and are kept only for SB3 code
+that reads them.
+
+Sampling
+--------
+``sample(batch_size)`` returns :class:`SequenceSamples` of ``batch_size`` chunks of ``batch_length``
+consecutive rows, each from one stream, shaped ``(B, T, ...)``. A chunk never crosses a stream's write head
+(so never joins the newest and the oldest rows) but may cross episode borders: ``is_first`` marks them, and is
+**not** forced to True at ``t = 0`` (the world model starts every chunk from its initial state anyway).
+The stream of a chunk is drawn in proportion to its number of valid chunk starts, so every valid
+``(stream, start)`` pair is equally likely with uniform selection. Random numbers come from numpy's
+**global** state (``np.random.random_sample``), as SB3's buffers draw from ``np.random``, so
+``stable_baselines3.common.utils.set_random_seed`` makes sampling reproducible and the buffer holds no
+generator (it pickles cleanly for ``save_replay_buffer`` / ``load_replay_buffer``).
+
+:class:`ETBSReplayBuffer` selects the chunk start by insertion age with efficient time-balanced sampling
+(:mod:`sb3_hieros.etbs`, thesis section 4.5) instead of uniformly.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import BaseBuffer, ReplayBuffer
+from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_hieros.etbs import CountBalancedSampler, _check_temperature, etbs_index_from_uniform
+
+ETBS_BUFFER_MODES = ("etbs", "uniform", "reference", "count")
+
+
+def _global_uniform(n: int) -> np.ndarray:
+    """``n`` uniform numbers in [0, 1) from numpy's global state, which SB3's ``set_random_seed`` seeds."""
+    return np.random.random_sample(n)  # noqa: NPY002 (deliberate: reproducible under SB3 seeding, picklable)
+
+
+class SequenceSamples(NamedTuple):
+    """A batch of chunks in the Dreamer view, torch tensors on the buffer's device.
+
+    :param observations: o_t, ``(B, T, *obs_shape)`` in the observation dtype (uint8 images stay uint8);
+        a dict of such tensors for Dict observation spaces
+    :param actions: a_{t-1}, the action that led to ``observations[:, t]``, ``(B, T, action_dim)``; 0 at ``is_first``
+    :param rewards: r_t, the reward received with ``observations[:, t]``, ``(B, T)`` float32; 0 at ``is_first``
+    :param is_first: ``(B, T)`` bool, episode starts
+    :param is_terminal: ``(B, T)`` bool, terminal observations (continue target = ``~is_terminal``)
+    :param subgoals: ``(B, T, *subgoal_shape)`` float32, the subgoal in force at each step, or None
+    """
+
+    observations: th.Tensor | dict[str, th.Tensor]
+    actions: th.Tensor
+    rewards: th.Tensor
+    is_first: th.Tensor
+    is_terminal: th.Tensor
+    subgoals: th.Tensor | None
+
+
+def _check_shape(
+    value: Any, expected: tuple[int, ...], name: str, also: tuple[tuple[int, ...], ...] = ()
+) -> np.ndarray:
+    """``value`` as an array of shape ``expected``; shapes listed in ``also`` are reshaped to it, others refused."""
+    array = np.asarray(value)
+    if array.shape == expected:
+        return array
+    if array.shape in also:
+        return array.reshape(expected)
+    accepted = " or ".join(str(s) for s in (expected, *also))
+    raise ValueError(f"{name} has shape {array.shape}, expected {accepted}")
+
+
+class SequenceReplayBuffer(ReplayBuffer):
+    """Replay buffer of per-env step streams, sampled as chunks of consecutive steps (Dreamer view).
+
+    See the module docstring for the row convention. Box, Discrete, MultiDiscrete, MultiBinary and Dict
+    observation spaces are supported (:class:`DictSequenceReplayBuffer` is the Dict-only name).
+
+    :param buffer_size: max number of stored steps over all envs; each env stream holds ``buffer_size // n_envs``
+    :param observation_space: observation space
+    :param action_space: action space
+    :param device: torch device of the sampled tensors
+    :param n_envs: number of parallel environments (streams)
+    :param optimize_memory_usage: must be False: each observation is already stored only once
+    :param handle_timeout_termination: if True, a done with ``infos[i]["TimeLimit.truncated"]`` is not terminal
+    :param batch_length: number of consecutive steps T per sampled chunk
+    :param subgoal_shape: shape of the subgoal stored with each step (higher HIEROS levels), or None
+    """
+
+    observations: np.ndarray | dict[str, np.ndarray]  # type: ignore[assignment]
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        device: th.device | str = "auto",
+        n_envs: int = 1,
+        optimize_memory_usage: bool = False,
+        handle_timeout_termination: bool = True,
+        batch_length: int = 64,
+        subgoal_shape: tuple[int, ...] | None = None,
+    ):
+        # BaseBuffer directly, as DictReplayBuffer does: ReplayBuffer.__init__ would allocate next_observations
+        BaseBuffer.__init__(self, buffer_size, observation_space, action_space, device, n_envs=n_envs)
+        if int(n_envs) != n_envs or n_envs < 1:
+            raise ValueError(f"n_envs must be an integer >= 1, got {n_envs!r}")
+        if optimize_memory_usage:
+            raise ValueError(
+                "optimize_memory_usage=True is not supported by SequenceReplayBuffer: it never stores a separate "
+                "next observation, so its memory is already that of the optimised variant; pass False"
+            )
+        if int(batch_length) != batch_length or batch_length < 1:
+            raise ValueError(f"batch_length must be an integer >= 1, got {batch_length!r}")
+        self.buffer_size = max(buffer_size // n_envs, 1)  # rows per stream
+        if batch_length > self.buffer_size:
+            raise ValueError(
+                f"batch_length={batch_length} exceeds the rows per env stream (buffer_size // n_envs = "
+                f"{buffer_size} // {n_envs} = {self.buffer_size})"
+            )
+        if subgoal_shape is not None:
+            subgoal_shape = tuple(subgoal_shape)
+            if not all(int(d) == d and d >= 1 for d in subgoal_shape):
+                raise ValueError(f"subgoal_shape must be a tuple of positive integers or None, got {subgoal_shape!r}")
+        self.optimize_memory_usage = False
+        self.handle_timeout_termination = handle_timeout_termination
+        self.batch_length = int(batch_length)
+        self.subgoal_shape = subgoal_shape
+
+        rows, n = self.buffer_size, self.n_envs
+        self._dict_obs = isinstance(observation_space, spaces.Dict)
+        if self._dict_obs:
+            self.observations = {
+                key: np.zeros((rows, n, *shape), dtype=observation_space[key].dtype)
+                for key, shape in self.obs_shape.items()  # type: ignore[attr-defined]
+            }
+        else:
+            self.observations = np.zeros((rows, n, *self.obs_shape), dtype=observation_space.dtype)
+        self.actions = np.zeros((rows, n, self.action_dim), dtype=self._maybe_cast_dtype(action_space.dtype))
+        self.rewards = np.zeros((rows, n), dtype=np.float32)
+        self.is_first = np.zeros((rows, n), dtype=bool)
+        self.is_terminal = np.zeros((rows, n), dtype=bool)
+        self.subgoals = None if subgoal_shape is None else np.zeros((rows, n, *subgoal_shape), dtype=np.float32)
+        # per-stream write heads; a stream expects an episode start until add() has seen its first step
+        self.stream_pos = np.zeros(n, dtype=np.int64)
+        self.stream_full = np.zeros(n, dtype=bool)
+        self._expect_first = np.ones(n, dtype=bool)
+
+    # ----------------------------------------------------------------------------------------------------
+    # bookkeeping
+
+    def _obs_arrays(self) -> dict[str, np.ndarray]:
+        return self.observations if self._dict_obs else {"": self.observations}  # type: ignore[return-value]
+
+    def stored_steps(self) -> np.ndarray:
+        """:return: number of rows (steps) stored in each env stream, int64 ``(n_envs,)``"""
+        return np.where(self.stream_full, self.buffer_size, self.stream_pos)
+
+    def size(self) -> int:
+        """:return: number of steps stored over all env streams"""
+        return int(self.stored_steps().sum())
+
+    def valid_starts(self) -> np.ndarray:
+        """:return: number of chunk starts per stream that give ``batch_length`` steps behind the write head"""
+        return np.maximum(self.stored_steps() - self.batch_length + 1, 0)
+
+    def can_sample(self) -> bool:
+        """:return: whether at least one stream holds ``batch_length`` steps, so ``sample`` will not raise"""
+        return bool(self.valid_starts().sum() > 0)
+
+    def _oldest_rows(self) -> np.ndarray:
+        return np.where(self.stream_full, self.stream_pos, 0)
+
+    def reset(self) -> None:
+        """Forget all stored steps (the arrays are not cleared, as in SB3)."""
+        super().reset()
+        self.stream_pos[:] = 0
+        self.stream_full[:] = False
+        self._expect_first[:] = True
+
+    # ----------------------------------------------------------------------------------------------------
+    # writing
+
+    def _check_obs(self, obs: np.ndarray | Mapping[str, np.ndarray], name: str) -> dict[str, np.ndarray]:
+        n = self.n_envs
+        if self._dict_obs:
+            if not isinstance(obs, Mapping) or set(obs.keys()) != set(self.observations.keys()):  # type: ignore[union-attr]
+                got = sorted(obs.keys()) if isinstance(obs, Mapping) else type(obs).__name__
+                raise ValueError(f"{name} must be a dict with keys {sorted(self.observations)}, got {got}")
+            items = {key: (obs[key], self.observation_space[key]) for key in self.observations}  # type: ignore[index]
+        else:
+            items = {"": (obs, self.observation_space)}
+        checked = {}
+        for key, (value, space) in items.items():
+            shape = (n, *space.shape) if not isinstance(space, spaces.Discrete) else (n, 1)
+            also = ((n,),) if isinstance(space, spaces.Discrete) else ()
+            checked[key] = _check_shape(value, shape, f"{name}[{key!r}]" if key else name, also)
+        return checked
+
+    def _check_action(self, action: np.ndarray) -> np.ndarray:
+        n, dim = self.n_envs, self.action_dim
+        # SB3 passes (n_envs, *action_space.shape); one-dimensional actions may come as (n_envs,)
+        also = [(n, *self.action_space.shape)] + ([(n,)] if dim == 1 else [])
+        return _check_shape(action, (n, dim), "action", tuple(s for s in dict.fromkeys(also) if s != (n, dim)))
+
+    def _check_subgoal(self, subgoal: np.ndarray | None) -> np.ndarray | None:
+        if self.subgoal_shape is None:
+            if subgoal is not None:
+                raise ValueError(
+                    f"subgoal given with shape {np.shape(subgoal)}, but this buffer has subgoal_shape=None; "
+                    "construct it with subgoal_shape=... to store subgoals"
+                )
+            return None
+        if subgoal is None:
+            raise ValueError(f"subgoal is required: this buffer stores subgoals of shape {self.subgoal_shape}")
+        return _check_shape(subgoal, (self.n_envs, *self.subgoal_shape), "subgoal")
+
+    def _on_rows_written(self, rows: np.ndarray, envs: np.ndarray) -> None:
+        """Hook called after rows ``rows`` of streams ``envs`` received new steps (before the heads advance)."""
+
+    def _write_rows(
+        self,
+        envs: np.ndarray,
+        obs: dict[str, np.ndarray],
+        actions: np.ndarray | int,
+        rewards: np.ndarray | float,
+        is_first: np.ndarray | bool,
+        is_terminal: np.ndarray | bool,
+        subgoals: np.ndarray | None,
+    ) -> None:
+        """Write one row at the head of each stream in ``envs`` (values already sliced to ``envs``) and advance."""
+        rows = self.stream_pos[envs]
+        for key, array in self._obs_arrays().items():
+            array[rows, envs] = obs[key]
+        self.actions[rows, envs] = actions
+        self.rewards[rows, envs] = rewards
+        self.is_first[rows, envs] = is_first
+        self.is_terminal[rows, envs] = is_terminal
+        if self.subgoals is not None:
+            self.subgoals[rows, envs] = subgoals
+        self._on_rows_written(rows, envs)
+        heads = rows + 1
+        wrapped = heads >= self.buffer_size
+        self.stream_full[envs[wrapped]] = True
+        self.stream_pos[envs] = np.where(wrapped, 0, heads)
+        self.pos, self.full = int(self.stream_pos[0]), bool(self.stream_full[0])
+
+    def _differs_from_last(self, obs: dict[str, np.ndarray], envs: np.ndarray) -> np.ndarray:
+        """Bitwise comparison of ``obs[envs]`` with the last stored observation of those streams."""
+        differs = np.zeros(len(envs), dtype=bool)
+        last_rows = (self.stream_pos[envs] - 1) % self.buffer_size
+        for key, array in self._obs_arrays().items():
+            stored = array[last_rows, envs].reshape(len(envs), -1)
+            new = np.ascontiguousarray(obs[key][envs], dtype=array.dtype).reshape(len(envs), -1)
+            differs |= (stored.view(np.uint8) != new.view(np.uint8)).any(axis=1)
+        return differs
+
+    def add(  # type: ignore[override]
+        self,
+        obs: np.ndarray | dict[str, np.ndarray],
+        next_obs: np.ndarray | dict[str, np.ndarray],
+        action: np.ndarray,
+        reward: np.ndarray,
+        done: np.ndarray,
+        infos: list[dict[str, Any]],
+        subgoal: np.ndarray | None = None,
+    ) -> None:
+        """Store one SB3 transition per env (signature of ``ReplayBuffer.add``, as called by ``_store_transition``).
+
+        ``next_obs`` must hold the true terminal observation where ``done`` (SB3 substitutes it). It becomes the
+        stream's new row; ``obs`` is stored only when a new episode starts (see the module docstring).
+
+        :param obs: o_t, ``(n_envs, *obs_shape)`` (or a dict of such arrays)
+        :param next_obs: o_{t+1}, same shape
+        :param action: a_t, ``(n_envs, action_dim)`` (``(n_envs,)`` for one-dimensional actions)
+        :param reward: r_{t+1}, ``(n_envs,)``
+        :param done: ``(n_envs,)``, the episode ended with o_{t+1}
+        :param infos: ``n_envs`` info dicts; ``"TimeLimit.truncated"`` marks a time-limit end (not terminal)
+        :param subgoal: g_t, the subgoal in force at o_t, ``(n_envs, *subgoal_shape)``; required iff the buffer
+            has a ``subgoal_shape``
+        """
+        n = self.n_envs
+        obs_d = self._check_obs(obs, "obs")
+        next_d = self._check_obs(next_obs, "next_obs")
+        action = self._check_action(action)
+        reward = _check_shape(reward, (n,), "reward")
+        done = _check_shape(done, (n,), "done").astype(bool)
+        if len(infos) != n:
+            raise ValueError(f"infos has length {len(infos)}, expected n_envs={n}")
+        subgoal = self._check_subgoal(subgoal)
+        truncated = np.zeros(n, dtype=bool)
+        if self.handle_timeout_termination:
+            truncated = np.array([bool(info.get("TimeLimit.truncated", False)) for info in infos])
+
+        first = self._expect_first.copy()
+        continuing = np.flatnonzero(~first)
+        if continuing.size:
+            first[continuing] = self._differs_from_last(obs_d, continuing)
+        starts = np.flatnonzero(first)
+        if starts.size:
+            self._write_rows(
+                starts,
+                {key: value[starts] for key, value in obs_d.items()},
+                actions=0,
+                rewards=0.0,
+                is_first=True,
+                is_terminal=False,
+                subgoals=None if subgoal is None else subgoal[starts],
+            )
+        continuing = np.flatnonzero(~first)
+        if subgoal is not None and continuing.size:
+            last_rows = (self.stream_pos[continuing] - 1) % self.buffer_size
+            self.subgoals[last_rows, continuing] = subgoal[continuing]  # type: ignore[index]
+        self._write_rows(np.arange(n), next_d, action, reward, False, done & ~truncated, subgoal)
+        self._expect_first = done.copy()
+
+    def add_step(
+        self,
+        obs: np.ndarray | dict[str, np.ndarray],
+        action: np.ndarray,
+        reward: np.ndarray,
+        is_first: np.ndarray,
+        is_terminal: np.ndarray,
+        subgoal: np.ndarray | None = None,
+    ) -> None:
+        """Store one step per env directly in the row convention (for HIEROS's higher levels).
+
+        :param obs: o_t, ``(n_envs, *obs_shape)`` (or a dict of such arrays)
+        :param action: a_{t-1}, the action that led to o_t, ``(n_envs, action_dim)``; ignored where ``is_first``
+        :param reward: r_t, received on arriving at o_t, ``(n_envs,)``; ignored where ``is_first``
+        :param is_first: ``(n_envs,)`` bool, o_t starts an episode
+        :param is_terminal: ``(n_envs,)`` bool, o_t is terminal
+        :param subgoal: g_t, the subgoal in force at o_t, ``(n_envs, *subgoal_shape)``; required iff the buffer
+            has a ``subgoal_shape``
+        """
+        n = self.n_envs
+        obs_d = self._check_obs(obs, "obs")
+        action = self._check_action(action)
+        reward = _check_shape(reward, (n,), "reward")
+        is_first = _check_shape(is_first, (n,), "is_first").astype(bool)
+        is_terminal = _check_shape(is_terminal, (n,), "is_terminal").astype(bool)
+        subgoal = self._check_subgoal(subgoal)
+        self._write_rows(np.arange(n), obs_d, action, reward, is_first, is_terminal, subgoal)
+
+    # ----------------------------------------------------------------------------------------------------
+    # sampling
+
+    def _draw_ages(self, n_valid: np.ndarray) -> np.ndarray:
+        """Chunk-start ages (0 = oldest valid start) for streams with ``n_valid`` valid starts; uniform here."""
+        ages = (_global_uniform(len(n_valid)) * n_valid).astype(np.int64)
+        return np.minimum(ages, n_valid - 1)
+
+    def _sample_starts(self, batch_size: int) -> tuple[np.ndarray, np.ndarray]:
+        """Draw ``(stream, start age)`` pairs: the stream in proportion to its valid starts, then the age."""
+        n_valid = self.valid_starts()
+        cumulative = np.cumsum(n_valid)
+        envs = np.searchsorted(cumulative, _global_uniform(batch_size) * cumulative[-1], side="right")
+        envs = np.minimum(envs, self.n_envs - 1)
+        return envs, self._draw_ages(n_valid[envs])
+
+    def sample(self, batch_size: int, env: VecNormalize | None = None) -> SequenceSamples:  # type: ignore[override]
+        """Sample ``batch_size`` chunks of ``batch_length`` consecutive steps (see :class:`SequenceSamples`).
+
+        :param batch_size: number of chunks B
+        :param env: VecNormalize to normalise observations and rewards with, as in SB3
+        :return: the chunks as torch tensors on ``self.device``, shaped ``(B, T, ...)``
+        """
+        if int(batch_size) != batch_size or batch_size < 1:
+            raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
+        if not self.can_sample():
+            stored = self.stored_steps()
+            raise ValueError(
+                f"cannot sample chunks of batch_length={self.batch_length}: need at least {self.batch_length} "
+                f"steps in one env stream, but the streams hold {stored.tolist()} steps"
+            )
+        envs, ages = self._sample_starts(int(batch_size))
+        return self._get_chunks(envs, ages, env)
+
+    def _get_chunks(self, envs: np.ndarray, ages: np.ndarray, env: VecNormalize | None = None) -> SequenceSamples:
+        """Gather the chunks that start ``ages`` rows after the oldest row of streams ``envs``."""
+        starts = self._oldest_rows()[envs] + ages
+        rows = (starts[:, None] + np.arange(self.batch_length)) % self.buffer_size  # (B, T)
+        cols = envs[:, None]  # (B, 1)
+        obs = {key: array[rows, cols] for key, array in self._obs_arrays().items()}  # (B, T, *shape)
+        obs = self._normalize_obs(obs if self._dict_obs else obs[""], env)
+        is_first = self.is_first[rows, cols]
+        actions = self.actions[rows, cols]  # (B, T, action_dim)
+        actions[is_first] = 0
+        rewards = self.rewards[rows, cols]
+        rewards[is_first] = 0.0
+        rewards = self._normalize_reward(rewards, env)
+        if isinstance(obs, dict):
+            observations: th.Tensor | dict[str, th.Tensor] = {k: self.to_torch(v, copy=False) for k, v in obs.items()}
+        else:
+            observations = self.to_torch(obs, copy=False)
+        return SequenceSamples(
+            observations=observations,
+            actions=self.to_torch(actions, copy=False),
+            rewards=self.to_torch(rewards, copy=False),
+            is_first=self.to_torch(is_first, copy=False),
+            is_terminal=self.to_torch(self.is_terminal[rows, cols], copy=False),
+            subgoals=None if self.subgoals is None else self.to_torch(self.subgoals[rows, cols], copy=False),
+        )
+
+    def _get_samples(self, batch_inds: np.ndarray, env: VecNormalize | None = None):  # type: ignore[override]
+        raise NotImplementedError("SequenceReplayBuffer returns chunks: use sample(batch_size)")
+
+
+class DictSequenceReplayBuffer(SequenceReplayBuffer):
+    """:class:`SequenceReplayBuffer` for Dict observation spaces (same code; observations are dicts of arrays).
+
+    :param buffer_size: max number of stored steps over all envs
+    :param observation_space: a ``spaces.Dict``
+    :param action_space: action space
+    :param kwargs: the other arguments of :class:`SequenceReplayBuffer`
+    """
+
+    def __init__(self, buffer_size: int, observation_space: spaces.Dict, action_space: spaces.Space, **kwargs: Any):
+        if not isinstance(observation_space, spaces.Dict):
+            raise ValueError(
+                "DictSequenceReplayBuffer needs a spaces.Dict observation space, "
+                f"got {type(observation_space).__name__}"
+            )
+        super().__init__(buffer_size, observation_space, action_space, **kwargs)
+
+
+class ETBSReplayBuffer(SequenceReplayBuffer):
+    """:class:`SequenceReplayBuffer` whose chunk starts are picked by insertion age with ETBS (thesis section 4.5).
+
+    Within the drawn stream, the start age (0 = oldest valid chunk start) comes from
+    :func:`sb3_hieros.etbs.etbs_index_from_uniform` over the stream's valid starts, O(1) per chunk.
+
+    :param buffer_size: max number of stored steps over all envs
+    :param observation_space: observation space (Dict included)
+    :param action_space: action space
+    :param device: torch device of the sampled tensors
+    :param n_envs: number of parallel environments (streams)
+    :param optimize_memory_usage: must be False
+    :param handle_timeout_termination: if True, a time-limit done is not terminal
+    :param batch_length: steps per chunk T
+    :param subgoal_shape: shape of the stored subgoal, or None
+    :param temperature: tau of eq. 4.21 (thesis default 0.3); used by "etbs" and "reference"
+    :param mode: "etbs" (thesis), "uniform", "reference" (the public code's capacity scaling, capacity being
+        the valid starts of a full stream) or "count" (O(n) count-based baseline,
+        :class:`sb3_hieros.etbs.CountBalancedSampler`, one counter per chunk start over all streams)
+    :param count_temperature: softmax temperature of the "count" mode, in draws per chunk start
+    """
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        device: th.device | str = "auto",
+        n_envs: int = 1,
+        optimize_memory_usage: bool = False,
+        handle_timeout_termination: bool = True,
+        batch_length: int = 64,
+        subgoal_shape: tuple[int, ...] | None = None,
+        temperature: float = 0.3,
+        mode: str = "etbs",
+        count_temperature: float = 1.0,
+    ):
+        if mode not in ETBS_BUFFER_MODES:
+            raise ValueError(f"mode must be one of {ETBS_BUFFER_MODES}, got {mode!r}")
+        _check_temperature(temperature)
+        super().__init__(
+            buffer_size,
+            observation_space,
+            action_space,
+            device=device,
+            n_envs=n_envs,
+            optimize_memory_usage=optimize_memory_usage,
+            handle_timeout_termination=handle_timeout_termination,
+            batch_length=batch_length,
+            subgoal_shape=subgoal_shape,
+        )
+        self.temperature = float(temperature)
+        self.mode = mode
+        self.counter = (
+            CountBalancedSampler(self.buffer_size * self.n_envs, count_temperature) if mode == "count" else None
+        )
+
+    def _on_rows_written(self, rows: np.ndarray, envs: np.ndarray) -> None:
+        if self.counter is not None:
+            self.counter.clear(rows * self.n_envs + envs)
+
+    def _draw_ages(self, n_valid: np.ndarray) -> np.ndarray:
+        u = _global_uniform(len(n_valid))
+        capacity = self.buffer_size - self.batch_length + 1
+        return etbs_index_from_uniform(u, n_valid, self.temperature, self.mode, capacity=capacity)
+
+    def _sample_starts(self, batch_size: int) -> tuple[np.ndarray, np.ndarray]:
+        if self.counter is None:
+            return super()._sample_starts(batch_size)
+        # O(n): every valid (stream, start) pair is a candidate with its own draw counter
+        n_valid = self.valid_starts()
+        envs = np.repeat(np.arange(self.n_envs), n_valid)
+        ages = np.arange(len(envs)) - np.repeat(np.cumsum(n_valid) - n_valid, n_valid)
+        rows = (self._oldest_rows()[envs] + ages) % self.buffer_size
+        chosen = self.counter.draw_from_uniform(_global_uniform(batch_size), rows * self.n_envs + envs)
+        return envs[chosen], ages[chosen]
