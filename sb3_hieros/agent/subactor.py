@@ -36,6 +36,10 @@ Documented choices:
   *loss* continue of a start state is ``1 - is_terminal`` of its replay row (DreamerV3), the imagined ones are the
   continue head's probabilities (detached).
 * The novelty reward is computed without gradient; the subgoal reward (a function of h) keeps the dynamics gradient.
+* Replay stores the received subgoal *code*; it is decoded with the current autoencoder at every training step, so
+  the reward target never goes stale (the reference stores the decoded vector, research note 8.8). The prior entropy
+  fed to the actor is that of the prior at the state both in imagination and when acting (the reference feeds the
+  posterior entropy when acting, note 5.1).
 * Actor, critic and autoencoder use AdamW without weight decay (as the reference and DreamerV3); each critic's
   gradient norm is clipped on its own (the reference gives each critic its own optimiser).
 """
