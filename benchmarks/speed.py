@@ -10,13 +10,14 @@ The last lines print each speed ratio (baseline median / ours median) as ``name:
 from __future__ import annotations
 
 import argparse
+import time
 from collections.abc import Callable, Sequence
 
 import torch
 from torch import nn
 
 from benchmarks._timing import Timing, environment_header, format_ms, time_interleaved
-from sb3_hieros.nn.s5 import S5Layer, S5Stack, _interleave, associative_scan_resettable
+from sb3_hieros.nn.s5 import S5Layer, S5Stack, _interleave, associative_scan_resettable, compile_s5
 
 Elements = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
@@ -71,9 +72,19 @@ def _fwd_bwd(fn: Callable[[], torch.Tensor]) -> Callable[[], None]:
     return run
 
 
-def s5_variants(length: int, batch: int, d_model: int, d_state: int, n_blocks: int, n_stack: int, seed: int):
+def s5_variants(
+    length: int,
+    batch: int,
+    d_model: int,
+    d_state: int,
+    n_blocks: int,
+    n_stack: int,
+    seed: int,
+    compile_layer: bool = False,
+) -> dict[str, Callable[[], None]]:
     """Forward+backward callables of every variant for one sequence length.
 
+    :param compile_layer: also time an ``S5Layer`` under ``compile_s5`` (compiles once here, tens of seconds)
     :return: name -> zero-argument callable
     """
     torch.manual_seed(seed)
@@ -112,7 +123,7 @@ def s5_variants(length: int, batch: int, d_model: int, d_state: int, n_blocks: i
         transition = torch.view_as_complex(lambda_bar_param).expand(batch, length, d_state)
         return reference_style_scan((transition, bu, flag))[1]
 
-    return {
+    variants = {
         "S5Layer": _fwd_bwd(lambda: layer(x, reset)[0]),
         "GRUCell loop": _fwd_bwd(gru_cell_loop),
         "nn.GRU (fused)": _fwd_bwd(lambda: gru(x)[0]),
@@ -120,6 +131,15 @@ def s5_variants(length: int, batch: int, d_model: int, d_state: int, n_blocks: i
         "scan (reference style)": _fwd_bwd(reference_scan),
         f"S5Stack ({n_stack} layers)": _fwd_bwd(lambda: stack(x, reset)[0]),
     }
+    if compile_layer:
+        compiled = S5Layer(d_model, d_state, n_blocks)
+        compiled.load_state_dict(layer.state_dict())
+        compile_s5(compiled)
+        start = time.perf_counter()
+        _fwd_bwd(lambda: compiled(x, reset)[0])()
+        print(f"  (T={length}: torch.compile of S5Layer took {time.perf_counter() - start:.0f} s)")
+        variants["S5Layer (compile_s5)"] = _fwd_bwd(lambda: compiled(x, reset)[0])
+    return variants
 
 
 def run_s5(args: argparse.Namespace) -> None:
@@ -132,7 +152,14 @@ def run_s5(args: argparse.Namespace) -> None:
     ratios: dict[str, float] = {}
     for length in args.lengths:
         variants = s5_variants(
-            length, args.batch, args.d_model, args.d_state, args.n_blocks, args.stack_layers, args.seed
+            length,
+            args.batch,
+            args.d_model,
+            args.d_state,
+            args.n_blocks,
+            args.stack_layers,
+            args.seed,
+            compile_layer=args.compile,
         )
         timings: dict[str, Timing] = time_interleaved(variants, warmup=args.warmup, reps=args.reps)
         print(f"\nT={length}")
@@ -144,6 +171,8 @@ def run_s5(args: argparse.Namespace) -> None:
         ratios[f"scan_vs_reference_scan_T{length}"] = (
             timings["scan (reference style)"].median / timings["scan (ours)"].median
         )
+        if args.compile:
+            ratios[f"s5_compiled_vs_eager_T{length}"] = s5 / timings["S5Layer (compile_s5)"].median
         stack_name = f"S5Stack ({args.stack_layers} layers)"
         ratios[f"s5stack{args.stack_layers}_ms_T{length}"] = timings[stack_name].median * 1e3
     print("\nratios (baseline median / ours median; s5stack*_ms is the stack's median in ms):")
@@ -167,6 +196,7 @@ def build_parser() -> argparse.ArgumentParser:
     s5.add_argument("--n-blocks", type=int, default=4)
     s5.add_argument("--stack-layers", type=int, default=8)
     s5.add_argument("--seed", type=int, default=0)
+    s5.add_argument("--compile", action="store_true", help="also time S5Layer under compile_s5 (slow to compile)")
     s5.set_defaults(func=run_s5)
     return parser
 

@@ -9,6 +9,8 @@ from sb3_hieros.nn.s5 import (
     S5Layer,
     S5Stack,
     associative_scan_resettable,
+    associative_scan_resettable_real,
+    compile_s5,
     hippo_n_eigendecomposition,
     ssm_parameter_names,
 )
@@ -71,6 +73,42 @@ def test_scan_matches_sequential_recurrence(length):
         state = keep[:, t] * lambda_bar * state + bu[:, t]
         expected.append(state)
     assert _max_abs(out, torch.stack(expected, dim=1)) <= ATOL
+
+
+@pytest.mark.parametrize("length", [1, 6, 13])
+def test_real_split_scan_matches_complex_scan(length):
+    lambda_bar = torch.exp(torch.complex(-torch.rand(P), torch.randn(P)))
+    keep = (torch.rand(2, length, 1) > 0.3).float()
+    bu = torch.randn(2, length, P, dtype=torch.complex64)
+    x0 = _random_state(2, P)
+    expected = associative_scan_resettable(lambda_bar, keep, bu, x0)
+    re, im = associative_scan_resettable_real(
+        lambda_bar.real, lambda_bar.imag, keep, bu.real, bu.imag, x0.real, x0.imag
+    )
+    assert _max_abs(torch.complex(re, im), expected) <= 1e-5
+
+
+def test_real_split_layer_path_matches_default():
+    stack = S5Stack(2, H, P, J)
+    x, reset = _inputs(length=11)
+    state = _random_state(3, 2, P)
+    y, states = stack(x, reset, state)
+    y.square().mean().backward()
+    grads = {n: p.grad.clone() for n, p in stack.named_parameters()}
+    stack.zero_grad()
+    for block in stack.blocks:
+        block.s5.real_split = True  # what compile_s5 switches on, here without compiling
+    y_rs, states_rs = stack(x, reset, state)
+    assert states_rs.dtype == torch.complex64
+    assert _max_abs(y_rs, y) <= 1e-5 and _max_abs(states_rs, states) <= 1e-5
+    y_rs.square().mean().backward()
+    for name, param in stack.named_parameters():
+        assert torch.allclose(param.grad, grads[name], atol=1e-5, rtol=1e-4), name
+
+
+def test_compile_s5_needs_a_layer():
+    with pytest.raises(ValueError, match="no S5Layer"):
+        compile_s5(torch.nn.Linear(2, 2))
 
 
 @pytest.mark.parametrize("module_cls", [S5Layer, S5Block])
@@ -185,10 +223,7 @@ def test_state_dict_is_real_without_constant_buffers():
     stack = S5Stack(2, H, P, J)
     sd = stack.state_dict()
     assert all(v.is_floating_point() for v in sd.values())
-    assert set(sd) == {name for name, _ in stack.named_parameters()} | {
-        name for name, _ in stack.named_buffers() if name in sd
-    }
-    assert not [name for name, _ in stack.named_buffers() if name in sd]
+    assert set(sd) == {name for name, _ in stack.named_parameters()}  # no persistent buffers
 
 
 def test_save_load_roundtrip_torch(tmp_path):

@@ -17,7 +17,7 @@ Differences to the public reference implementation (research note hieros_referen
 * Re(Lambda) is parameterised as ``-exp(log_neg_lambda_real)`` so it stays strictly negative under any
   optimiser step (the reference trains the complex Lambda unconstrained and may become unstable).
 * C is initialised with standard deviation ``1/sqrt(P)`` per real and imaginary part as in S5; the
-  reference's initialiser treats C like a convolution kernel and makes it about 16x too small.
+  reference's initialiser treats C like a convolution kernel and makes it more than ten times too small.
 * B is drawn with its true fan-in H (the reference uses P) before the eigenbasis change.
 * Complex parameters are stored as real tensors (``(..., 2)`` pairs, or separate real and imaginary parts
   for Lambda), so state_dicts are all-real and survive ``torch.load(weights_only=True)``, fused optimisers,
@@ -28,7 +28,7 @@ Differences to the public reference implementation (research note hieros_referen
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import torch
 import torch.nn.functional as F
@@ -39,6 +39,8 @@ __all__ = [
     "S5Layer",
     "S5Stack",
     "associative_scan_resettable",
+    "associative_scan_resettable_real",
+    "compile_s5",
     "hippo_n_eigendecomposition",
     "ssm_parameter_names",
 ]
@@ -119,6 +121,64 @@ def associative_scan_resettable(
     even_rest = lambda_bar * (odd[:, :n_even_rest] * keep[:, 2::2]) + bu[:, 2::2]
     even = torch.cat((first, even_rest), dim=1)
     return _interleave(even, odd, length)
+
+
+def _complex_mul(
+    a_re: torch.Tensor, a_im: torch.Tensor, b_re: torch.Tensor, b_im: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(a_re + i a_im) * (b_re + i b_im)`` on real tensors."""
+    return a_re * b_re - a_im * b_im, a_re * b_im + a_im * b_re
+
+
+def associative_scan_resettable_real(
+    lambda_re: torch.Tensor,
+    lambda_im: torch.Tensor,
+    keep: torch.Tensor,
+    bu_re: torch.Tensor,
+    bu_im: torch.Tensor,
+    initial_re: torch.Tensor | None = None,
+    initial_im: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``associative_scan_resettable`` on separate real and imaginary parts (no complex dtype anywhere).
+
+    The same odd/even recursion; this layout is what ``torch.compile`` (Inductor) can generate code for.
+
+    :param lambda_re: real part of ``lambda_bar`` ``(P,)``
+    :param lambda_im: imaginary part of ``lambda_bar`` ``(P,)``
+    :param keep: ``1 - reset`` ``(B, T, 1)``
+    :param bu_re: real part of ``B_bar u`` ``(B, T, P)``
+    :param bu_im: imaginary part of ``B_bar u`` ``(B, T, P)``
+    :param initial_re: real part of the state before step 0 ``(B, P)``, or None (then ``initial_im`` is None too)
+    :param initial_im: imaginary part of that state
+    :return: real and imaginary parts of the states ``(B, T, P)`` each
+    """
+    length = bu_re.shape[1]
+    first_re, first_im = bu_re[:, :1], bu_im[:, :1]
+    if initial_re is not None and initial_im is not None:
+        carry_re, carry_im = _complex_mul(
+            lambda_re, lambda_im, initial_re.unsqueeze(1) * keep[:, :1], initial_im.unsqueeze(1) * keep[:, :1]
+        )
+        first_re, first_im = first_re + carry_re, first_im + carry_im
+    if length == 1:
+        return first_re, first_im
+    keep_odd = keep[:, 1::2]
+    pair_re, pair_im = _complex_mul(lambda_re, lambda_im, bu_re[:, 0:-1:2] * keep_odd, bu_im[:, 0:-1:2] * keep_odd)
+    odd_re, odd_im = associative_scan_resettable_real(
+        *_complex_mul(lambda_re, lambda_im, lambda_re, lambda_im),
+        keep_odd * keep[:, 0:-1:2],
+        pair_re + bu_re[:, 1::2],
+        pair_im + bu_im[:, 1::2],
+        initial_re,
+        initial_im,
+    )
+    n_even_rest = (length - 1) // 2
+    keep_even = keep[:, 2::2]
+    rest_re, rest_im = _complex_mul(
+        lambda_re, lambda_im, odd_re[:, :n_even_rest] * keep_even, odd_im[:, :n_even_rest] * keep_even
+    )
+    even_re = torch.cat((first_re, rest_re + bu_re[:, 2::2]), dim=1)
+    even_im = torch.cat((first_im, rest_im + bu_im[:, 2::2]), dim=1)
+    return _interleave(even_re, odd_re, length), _interleave(even_im, odd_im, length)
 
 
 def _check_input(x: object, d_model: int, ndim: int, name: str = "x") -> torch.Tensor:
@@ -231,6 +291,9 @@ class S5Layer(nn.Module):
         self.C = nn.Parameter(torch.view_as_real(c_tilde).float().contiguous())
         self.D = nn.Parameter(torch.randn(d_model))
         self.log_step = nn.Parameter(log_step)
+        # Opt-in alternative computation path (see ``compile_s5``); not part of the state_dict.
+        self.real_split = False
+        self._compiled_core: Callable[..., tuple[torch.Tensor, torch.Tensor]] | None = None
 
     def extra_repr(self) -> str:
         return f"d_model={self.d_model}, d_state={self.d_state}, n_blocks={self.n_blocks}"
@@ -277,6 +340,50 @@ class S5Layer(nn.Module):
         w_out = torch.stack((self.C[..., 0], -self.C[..., 1]), dim=-1).reshape(self.d_model, 2 * self.d_state)
         return lambda_bar, w_in, w_out
 
+    def _discretize_real_split(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``discretize`` written with real arithmetic only (for ``torch.compile``).
+
+        :return: real and imaginary parts of ``Lambda_bar`` ``(P,)`` and the input weight ``(2P, H)`` as in
+            ``_real_weights``
+        """
+        lam_re, lam_im = -torch.exp(self.log_neg_lambda_real), self.lambda_imag
+        step = torch.exp(self.log_step)
+        magnitude, phase = torch.exp(lam_re * step), lam_im * step
+        bar_re, bar_im = magnitude * torch.cos(phase), magnitude * torch.sin(phase)
+        # (Lambda_bar - 1) / Lambda = (Lambda_bar - 1) * conj(Lambda) / |Lambda|^2
+        inv_norm = 1.0 / (lam_re * lam_re + lam_im * lam_im)
+        scale_re, scale_im = _complex_mul(bar_re - 1.0, bar_im, lam_re * inv_norm, -lam_im * inv_norm)
+        b_re, b_im = _complex_mul(scale_re.unsqueeze(-1), scale_im.unsqueeze(-1), self.B[..., 0], self.B[..., 1])
+        w_in = torch.stack((b_re, b_im), dim=1).reshape(2 * self.d_state, self.d_model)
+        return bar_re, bar_im, w_in
+
+    def _forward_real_split(
+        self, u: torch.Tensor, keep: torch.Tensor, state: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Parallel form without complex dtypes (the unit that ``compile_s5`` compiles).
+
+        :param u: inputs ``(B, T, H)`` in the parameters' dtype
+        :param keep: ``1 - reset`` ``(B, T, 1)``
+        :param state: ``view_as_real`` of the initial state ``(B, P, 2)``, or None
+        :return: outputs ``(B, T, H)`` and the states as (real, imaginary) pairs ``(B, T, P, 2)``
+        """
+        batch, length, _ = u.shape
+        bar_re, bar_im, w_in = self._discretize_real_split()
+        w_out = torch.stack((self.C[..., 0], -self.C[..., 1]), dim=-1).reshape(self.d_model, 2 * self.d_state)
+        bu = F.linear(u, w_in).view(batch, length, self.d_state, 2)
+        states_re, states_im = associative_scan_resettable_real(
+            bar_re,
+            bar_im,
+            keep,
+            bu[..., 0],
+            bu[..., 1],
+            None if state is None else state[..., 0],
+            None if state is None else state[..., 1],
+        )
+        states = torch.stack((states_re, states_im), dim=-1)  # (B, T, P, 2)
+        y = F.linear(states.reshape(batch, length, 2 * self.d_state), w_out) + u * self.D
+        return y, states
+
     def _forward(
         self, x: torch.Tensor, reset: torch.Tensor, state: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -284,6 +391,11 @@ class S5Layer(nn.Module):
         batch, length, _ = x.shape
         with torch.autocast(device_type=x.device.type, enabled=False):
             u = x.to(self.B.dtype)
+            if self.real_split:
+                core = self._forward_real_split if self._compiled_core is None else self._compiled_core
+                keep = (~reset).to(u.dtype).unsqueeze(-1)
+                y, states = core(u, keep, None if state is None else torch.view_as_real(state))
+                return y, torch.view_as_complex(states)
             lambda_bar, w_in, w_out = self._real_weights()
             bu = torch.view_as_complex(F.linear(u, w_in).view(batch, length, self.d_state, 2))  # (B, T, P)
             keep = (~reset).to(u.dtype).unsqueeze(-1)  # (B, T, 1)
@@ -532,3 +644,25 @@ def ssm_parameter_names(module: nn.Module) -> list[str]:
         if isinstance(sub, S5Layer):
             names.extend(f"{prefix}.{name}" if prefix else name for name in _SSM_PARAMETER_NAMES)
     return names
+
+
+def compile_s5(module: nn.Module, **compile_kwargs: object) -> nn.Module:
+    """Opt-in ``torch.compile`` of the parallel form of every ``S5Layer`` inside ``module`` (in place).
+
+    The layers switch to the real-split computation (Inductor does not generate code for complex
+    operators) and compile it with ``torch.compile(**compile_kwargs)``. Results equal the default path up to
+    float rounding. Compilation costs tens of seconds per new input shape on a CPU, so this pays off only for
+    long training runs; ``step`` stays eager. ``torch.save(module)`` of a compiled module (pickling the whole
+    object) is not supported; save the ``state_dict`` as usual.
+
+    :param module: a module containing ``S5Layer``s (e.g. ``S5Stack``)
+    :param compile_kwargs: passed to ``torch.compile`` (e.g. ``mode``, ``dynamic``)
+    :return: ``module`` itself
+    """
+    layers = [sub for sub in module.modules() if isinstance(sub, S5Layer)]
+    if not layers:
+        raise ValueError(f"module {type(module).__name__} contains no S5Layer to compile")
+    for layer in layers:
+        layer.real_split = True
+        layer._compiled_core = torch.compile(layer._forward_real_split, **compile_kwargs)
+    return module
