@@ -60,9 +60,14 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import BaseBuffer, ReplayBuffer
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_hieros.etbs import CountBalancedSampler, _check_temperature, etbs_index_from_uniform
+from sb3_hieros.etbs import (
+    CountBalancedSampler,
+    MeanFieldCountSampler,
+    _check_temperature,
+    etbs_index_from_uniform,
+)
 
-ETBS_BUFFER_MODES = ("etbs", "uniform", "reference", "count")
+ETBS_BUFFER_MODES = ("etbs", "uniform", "reference", "count", "meanfield")
 
 
 def _global_uniform(n: int) -> np.ndarray:
@@ -474,9 +479,13 @@ class ETBSReplayBuffer(SequenceReplayBuffer):
     :param subgoal_shape: shape of the stored subgoal, or None
     :param temperature: tau of eq. 4.21 (thesis default 0.3); used by "etbs" and "reference"
     :param mode: "etbs" (thesis), "uniform", "reference" (the public code's capacity scaling, capacity being
-        the valid starts of a full stream) or "count" (O(n) count-based baseline,
-        :class:`sb3_hieros.etbs.CountBalancedSampler`, one counter per chunk start over all streams)
-    :param count_temperature: softmax temperature of the "count" mode, in draws per chunk start
+        the valid starts of a full stream), "count" (O(n) count-based baseline,
+        :class:`sb3_hieros.etbs.CountBalancedSampler`, one counter per chunk start over all streams) or
+        "meanfield" (beyond the thesis: O(1) sampler with the count-based profile,
+        :class:`sb3_hieros.etbs.MeanFieldCountSampler`)
+    :param count_temperature: softmax temperature of the "count" and "meanfield" modes, in draws per chunk start
+    :param draws_per_insert: "meanfield" only (required there): chunks drawn per step added to a stream, e.g.
+        ``batch_size * gradient_steps / (train_freq * n_envs)`` for SB3's training loop
     """
 
     def __init__(
@@ -493,10 +502,13 @@ class ETBSReplayBuffer(SequenceReplayBuffer):
         temperature: float = 0.3,
         mode: str = "etbs",
         count_temperature: float = 1.0,
+        draws_per_insert: float | None = None,
     ):
         if mode not in ETBS_BUFFER_MODES:
             raise ValueError(f"mode must be one of {ETBS_BUFFER_MODES}, got {mode!r}")
         _check_temperature(temperature)
+        if mode == "meanfield" and draws_per_insert is None:
+            raise ValueError("mode='meanfield' needs draws_per_insert (chunks drawn per step added to a stream)")
         super().__init__(
             buffer_size,
             observation_space,
@@ -513,6 +525,9 @@ class ETBSReplayBuffer(SequenceReplayBuffer):
         self.counter = (
             CountBalancedSampler(self.buffer_size * self.n_envs, count_temperature) if mode == "count" else None
         )
+        self.meanfield = (
+            MeanFieldCountSampler(count_temperature, draws_per_insert) if mode == "meanfield" else None  # type: ignore[arg-type]
+        )
 
     def _on_rows_written(self, rows: np.ndarray, envs: np.ndarray) -> None:
         if self.counter is not None:
@@ -520,6 +535,8 @@ class ETBSReplayBuffer(SequenceReplayBuffer):
 
     def _draw_ages(self, n_valid: np.ndarray) -> np.ndarray:
         u = _global_uniform(len(n_valid))
+        if self.meanfield is not None:
+            return self.meanfield.index_from_uniform(u, n_valid)
         capacity = self.buffer_size - self.batch_length + 1
         return etbs_index_from_uniform(u, n_valid, self.temperature, self.mode, capacity=capacity)
 

@@ -221,6 +221,8 @@ def test_constructor_bad_input():
         ETBSReplayBuffer(40, OBS_SPACE, ACT_SPACE, batch_length=4, mode="greedy")
     with pytest.raises(ValueError, match="temperature"):
         ETBSReplayBuffer(40, OBS_SPACE, ACT_SPACE, batch_length=4, temperature=2.0)
+    with pytest.raises(ValueError, match="draws_per_insert"):
+        ETBSReplayBuffer(40, OBS_SPACE, ACT_SPACE, batch_length=4, mode="meanfield")
 
 
 def test_subgoals_follow_their_observation():
@@ -374,9 +376,9 @@ def test_sb3_store_transition_and_save_load_replay_buffer(tmp_path):
     assert model.replay_buffer.sample(4).observations.shape == (4, 4, 2)
 
 
-@pytest.mark.parametrize("mode", ["etbs", "uniform", "reference", "count"])
+@pytest.mark.parametrize("mode", ["etbs", "uniform", "reference", "count", "meanfield"])
 def test_etbs_buffer_modes_sample_valid_chunks(mode):
-    buffer = ETBSReplayBuffer(90, OBS_SPACE, ACT_SPACE, n_envs=3, batch_length=6, mode=mode)
+    buffer = ETBSReplayBuffer(90, OBS_SPACE, ACT_SPACE, n_envs=3, batch_length=6, mode=mode, draws_per_insert=2.0)
     feeder = fill(buffer, 50, n_envs=3, episode_length=(5, 8))
     for _ in range(5):
         check_chunks(buffer.sample(16), feeder)

@@ -1,7 +1,16 @@
+import itertools
+
 import numpy as np
 import pytest
 
-from sb3_hieros.etbs import CountBalancedSampler, etbs_cdf, etbs_index_from_uniform, etbs_indices
+from sb3_hieros.etbs import (
+    CountBalancedSampler,
+    MeanFieldCountSampler,
+    etbs_cdf,
+    etbs_index_from_uniform,
+    etbs_indices,
+    meanfield_beta,
+)
 
 # 99.9% quantile of the chi-square distribution with 9 degrees of freedom (10 deciles)
 CHI2_9_999 = 27.877
@@ -193,5 +202,57 @@ def test_count_sampler_balances_a_growing_buffer():
     ],
 )
 def test_count_sampler_bad_input(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
+def test_meanfield_beta_limits_and_monotonicity():
+    assert meanfield_beta(1e4) == pytest.approx(1.0, abs=1e-3)  # uniform sampling: theta = ln(s)
+    assert meanfield_beta(1e4, draws_per_insert=4.0) == pytest.approx(4.0, rel=1e-3)
+    betas = [meanfield_beta(t) for t in (3.0, 1.0, 0.3, 0.1)]
+    assert all(a < b for a, b in itertools.pairwise(betas))
+    assert meanfield_beta(1.0, 4.0) > meanfield_beta(1.0, 1.0)
+
+
+@pytest.mark.parametrize("temperature, draws", [(1.0, 1.0), (0.3, 4.0)])
+def test_meanfield_sampler_range_and_tabulation(temperature, draws):
+    sampler = MeanFieldCountSampler(temperature, draws)
+    assert abs(sampler.normaliser_error) < 1e-3  # the tabulated density integrates to the exact d / beta
+    rng = np.random.default_rng(0)
+    for size in (1, 2, 1000):
+        idx = sampler.sample(size, 4000, rng)
+        assert idx.dtype == np.int64 and idx.shape == (4000,)
+        assert 0 <= idx.min() and idx.max() < size
+    assert (sampler.sample(1000, 4000, rng) >= 500).mean() > 0.5  # newer half preferred
+
+
+def test_meanfield_sampler_matches_count_based_profile():
+    inserts, seeds, temperature = 2000, 4, 0.3
+    count_profile, meanfield_profile = np.zeros(10), np.zeros(10)
+    meanfield = MeanFieldCountSampler(temperature)
+    for seed in range(seeds):
+        rng = np.random.default_rng(seed)
+        counter = CountBalancedSampler(inserts, temperature)
+        counts = np.zeros(inserts)
+        for size in range(1, inserts + 1):
+            counter.sample(size, 1, rng)
+            counts[meanfield.sample(size, 1, rng)] += 1
+        count_profile += counter.counts.reshape(10, -1).mean(axis=1)
+        meanfield_profile += counts.reshape(10, -1).mean(axis=1)
+    np.testing.assert_allclose(meanfield_profile, count_profile, rtol=0.1)
+    uniform_like = np.log(10.0)  # roughly the oldest decile of uniform sampling
+    assert count_profile[0] / seeds < uniform_like
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda: meanfield_beta(0.0), "temperature"),
+        (lambda: meanfield_beta(1.0, 0.0), "draws_per_insert"),
+        (lambda: MeanFieldCountSampler(1.0, grid_points=1), "grid_points"),
+        (lambda: MeanFieldCountSampler(1.0).sample(0, 1, np.random.default_rng(0)), "size"),
+    ],
+)
+def test_meanfield_bad_input(call, match):
     with pytest.raises(ValueError, match=match):
         call()
