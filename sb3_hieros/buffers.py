@@ -63,7 +63,6 @@ from stable_baselines3.common.vec_env import VecNormalize
 from sb3_hieros.etbs import (
     CountBalancedSampler,
     MeanFieldCountSampler,
-    _check_temperature,
     etbs_index_from_uniform,
 )
 
@@ -506,7 +505,8 @@ class ETBSReplayBuffer(SequenceReplayBuffer):
     ):
         if mode not in ETBS_BUFFER_MODES:
             raise ValueError(f"mode must be one of {ETBS_BUFFER_MODES}, got {mode!r}")
-        _check_temperature(temperature)
+        if not 0.0 <= temperature <= 1.0:  # also rejects NaN
+            raise ValueError(f"temperature must lie in [0, 1], got {temperature!r}")
         if mode == "meanfield" and draws_per_insert is None:
             raise ValueError("mode='meanfield' needs draws_per_insert (chunks drawn per step added to a stream)")
         super().__init__(
