@@ -42,7 +42,9 @@ This fixes the reference bugs of research note 8.4/8.5: the final reward is kept
 never lost at higher levels, one env's episode end never touches another env's reward sums, the k-step history
 never straddles an episode border, and a new episode gets fresh subgoals at once instead of its predecessor's. An
 episode start costs env j one extra (shorter) window at each level, so rows are written per env with the
-buffers' per-stream write heads.
+buffers' per-stream write heads (``SequenceReplayBuffer._write_rows`` for a subset of envs: ``add_step`` writes all
+envs). The summed rewards are those the agent sees (normalised under ``VecNormalize``, so the higher levels'
+replays are sampled without normalisation, while level 0's stores raw rewards and normalises when sampling).
 
 Training schedule
 -----------------
@@ -346,6 +348,11 @@ class HIEROS(OffPolicyAlgorithm):
                 f"{path} holds the replay of {len(higher) + 1} levels, but this model has "
                 f"n_levels={self.config.n_levels}"
             )
+        for buffer in self.level_buffers():
+            if buffer.n_envs != self.n_envs:
+                raise ValueError(
+                    f"{path} holds a replay of {buffer.n_envs} envs, but this model has n_envs={self.n_envs}"
+                )
         for buffer in higher:
             buffer.device = self.device
 

@@ -103,7 +103,6 @@ def test_multi_env_and_progress_bar():
 def test_dump_logs_records_level_metrics():
     model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(train_ratio=16.0))
     model.learn(60)
-    keys = set(model.logger.name_to_value)
     # the means are flushed at each dump; record one more update and inspect the pending values
     model.train(gradient_steps=4, batch_size=2)
     keys = set(model.logger.name_to_value)
