@@ -14,6 +14,7 @@ from hieros_helpers import SmallDictEnv, tiny_kwargs
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.envs import FakeImageEnv, IdentityEnv
 from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_hieros import HIEROS, CnnPolicy, HierosPolicy, MlpPolicy, MultiInputPolicy
 
@@ -243,3 +244,22 @@ def test_tensorboard(tmp_path):
     assert os.path.isdir(tmp_path / "HIEROS_1")
     assert not os.path.isdir(tmp_path / "HIEROS_2")
     assert any(name.startswith("events") for name in os.listdir(tmp_path / "HIEROS_1"))
+
+
+def test_vec_normalize_and_continued_learning():
+    env = VecNormalize(make_vec_env("CartPole-v1", n_envs=2, seed=0), norm_obs=True, norm_reward=True)
+    model = HIEROS("MlpPolicy", env, **tiny_kwargs())
+    model.learn(60)
+    assert model._n_updates > 0
+    # the level-0 replay stores raw observations (VecNormalize normalises them when sampling)
+    buffer = model.replay_buffer
+    last = buffer.observations[buffer.stream_pos - 1, np.arange(2)]
+    assert not model._last_episode_starts.all()
+    for j in np.flatnonzero(~model._last_episode_starts):
+        np.testing.assert_allclose(last[j], model._last_original_obs[j])
+        assert not np.allclose(last[j], model._last_obs[j])
+    steps = int(model._hier.step[0])
+    model.learn(20, reset_num_timesteps=False)
+    assert int(model._hier.step[0]) == steps + 10  # the hierarchy carries on (no reset between learn calls)
+    model.learn(20)
+    assert int(model._hier.step[0]) == 10  # reset_num_timesteps resets the envs and the hierarchy
