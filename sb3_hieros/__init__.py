@@ -1,5 +1,22 @@
 """sb3-hieros: the HIEROS agent for Stable-Baselines3."""
 
+from sb3_hieros.buffers import DictSequenceReplayBuffer, ETBSReplayBuffer, SequenceReplayBuffer
+from sb3_hieros.config import HierosConfig, get_preset
+from sb3_hieros.hieros import HIEROS
+from sb3_hieros.policies import CnnPolicy, HierosPolicy, MlpPolicy, MultiInputPolicy
+
 __version__ = "0.1.0"
 
-__all__ = ["__version__"]
+__all__ = [
+    "HIEROS",
+    "CnnPolicy",
+    "DictSequenceReplayBuffer",
+    "ETBSReplayBuffer",
+    "HierosConfig",
+    "HierosPolicy",
+    "MlpPolicy",
+    "MultiInputPolicy",
+    "SequenceReplayBuffer",
+    "__version__",
+    "get_preset",
+]

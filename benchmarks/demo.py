@@ -1,0 +1,143 @@
+"""Demo: train HIEROS on CartPole-v1 and plot its learning curve (``make demo`` runs ``python -m benchmarks.demo``).
+
+Trains the given preset (default ``small``) for ``--steps`` environment steps, evaluating the deterministic policy
+every ``--eval-freq`` steps on a separate environment (SB3 ``EvalCallback``, ``--eval-episodes`` episodes), and
+writes to ``--out`` (default ``results/demo/``):
+
+* ``learning_curve.png``: mean and standard deviation of the evaluation return over the training steps;
+* ``evaluations.npz``: SB3's evaluation log (``timesteps``, ``results``, ``ep_lengths``);
+* ``final_eval.json``: the last evaluation (mean/std return, episode returns), steps, wall time, settings;
+* ``progress.csv``: the training log (``rollout/*``, ``time/*``, ``train/level{i}/*``);
+* ``model.zip``: the trained model (``HIEROS.load``).
+
+Decoded-subgoal pictures: pass callbacks through :func:`extra_callbacks` (the hook for the SubgoalDecodeCallback of
+the callbacks issue; it returns none yet).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import time
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.logger import configure
+
+from benchmarks._timing import environment_header
+from sb3_hieros import HIEROS
+
+
+def extra_callbacks(out: pathlib.Path) -> list[BaseCallback]:
+    """Further callbacks of the demo (hook: decoded-subgoal pictures will be written from here into ``out``).
+
+    :param out: output directory
+    :return: callbacks to add to training
+    """
+    del out
+    return []
+
+
+def plot_learning_curve(evaluations: pathlib.Path, path: pathlib.Path, title: str) -> None:
+    """Evaluation return (mean +- std over the evaluation episodes) against environment steps, as a PNG.
+
+    :param evaluations: SB3's ``evaluations.npz``
+    :param path: PNG to write
+    :param title: plot title
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    data = np.load(evaluations)
+    steps, results = data["timesteps"], data["results"]
+    mean, std = results.mean(1), results.std(1)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot(steps, mean, marker="o", label="evaluation return (deterministic)")
+    ax.fill_between(steps, mean - std, mean + std, alpha=0.25)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("episode return")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """Train, evaluate, plot and save (see the module docstring).
+
+    :param argv: command-line arguments (default: ``sys.argv``)
+    :return: the final evaluation summary written to ``final_eval.json``
+    """
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=10_000, help="environment steps to train")
+    parser.add_argument("--eval-freq", type=int, default=1_000, help="evaluate every N environment steps")
+    parser.add_argument("--eval-episodes", type=int, default=5, help="episodes per evaluation")
+    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("results/demo"), help="output directory")
+    parser.add_argument("--seed", type=int, default=0, help="random seed")
+    parser.add_argument("--preset", default="small", choices=("small", "paper"), help="hyperparameter preset")
+    parser.add_argument("--env", default="CartPole-v1", help="gymnasium environment id")
+    parser.add_argument(
+        "--threads", type=int, default=None, help="torch CPU threads (default: torch's, i.e. OMP_NUM_THREADS)"
+    )
+    args = parser.parse_args(argv)
+    if args.threads is not None:
+        th.set_num_threads(args.threads)
+
+    out: pathlib.Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    print(environment_header())
+    print(f"demo: {args.preset} preset on {args.env}, {args.steps} steps, seed {args.seed}, output {out}")
+
+    env = make_vec_env(args.env, n_envs=1, seed=args.seed)
+    eval_env = make_vec_env(args.env, n_envs=1, seed=args.seed + 1000)
+    model = HIEROS("MlpPolicy", env, preset=args.preset, seed=args.seed, verbose=0)
+    model.set_logger(configure(str(out), ["csv"]))
+    evaluation = EvalCallback(
+        eval_env,
+        eval_freq=args.eval_freq,
+        n_eval_episodes=args.eval_episodes,
+        deterministic=True,
+        log_path=str(out),
+        verbose=1,
+    )
+    start = time.perf_counter()
+    model.learn(args.steps, callback=[evaluation, *extra_callbacks(out)])
+    wall = time.perf_counter() - start
+    model.save(out / "model.zip")
+
+    evaluations = out / "evaluations.npz"
+    if not evaluations.exists():
+        raise RuntimeError(f"no evaluation was run: --eval-freq {args.eval_freq} exceeds --steps {args.steps}")
+    results = np.load(evaluations)["results"]
+    plot_learning_curve(evaluations, out / "learning_curve.png", f"HIEROS ({args.preset}) on {args.env}")
+    summary = {
+        "env": args.env,
+        "preset": args.preset,
+        "seed": args.seed,
+        "steps": int(model.num_timesteps),
+        "level_updates": list(model._level_updates or []),
+        "wall_time_s": round(wall, 1),
+        "seconds_per_env_step": round(wall / max(model.num_timesteps, 1), 4),
+        "final_eval_mean_return": float(results[-1].mean()),
+        "final_eval_std_return": float(results[-1].std()),
+        "final_eval_returns": results[-1].tolist(),
+        "eval_mean_returns": results.mean(1).tolist(),
+    }
+    (out / "final_eval.json").write_text(json.dumps(summary, indent=2) + "\n")
+    print(
+        f"wall time {wall:.1f} s ({summary['seconds_per_env_step']} s per env step), updates {summary['level_updates']}"
+    )
+    print("eval mean returns: " + ", ".join(f"{r:.1f}" for r in summary["eval_mean_returns"]))
+    print(f"final_eval_mean_return: {summary['final_eval_mean_return']:.1f}")
+    return summary
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,116 @@
+"""Shared tiny configurations and small environments for the HIEROS algorithm tests (not a test module)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+#: Tiny networks: every code path of the small preset, a fraction of the cost.
+TINY_OVERRIDES: dict[str, Any] = {
+    "world_model": {
+        "s5_layers": 1,
+        "s5_model_dim": 16,
+        "s5_state_dim": 8,
+        "s5_hippo_blocks": 2,
+        "deter_dim": 16,
+        "stoch_groups": 4,
+        "stoch_classes": 4,
+        "hidden": 16,
+        "cnn_depth": 2,
+        "mlp_units": 16,
+        "mlp_layers": 1,
+        "head_units": 16,
+        "head_layers": 1,
+        "warmup": 2,
+    },
+    "actor_critic": {"units": 16, "layers": 1},
+    "subgoal": {"units": 16, "layers": 1, "n_cat": 4, "n_classes": 4},
+}
+
+
+def tiny_kwargs(**changes: Any) -> dict[str, Any]:
+    """Constructor keywords of a tiny HIEROS (0.25 level-0 updates per env step after 20 random steps).
+
+    :param changes: keywords to replace or add
+    :return: keywords for ``HIEROS(policy, env, **kwargs)``
+    """
+    kwargs: dict[str, Any] = dict(
+        preset="small",
+        config_overrides=TINY_OVERRIDES,
+        batch_size=2,
+        batch_length=8,
+        imag_horizon=3,
+        learning_starts=20,
+        buffer_size=500,
+        n_levels=2,
+        subgoal_interval=2,
+        train_ratio=4.0,
+        seed=0,
+    )
+    kwargs.update(changes)
+    return kwargs
+
+
+class CountingEnv(gym.Env):
+    """Scripted episodes for the replay bookkeeping tests.
+
+    The observation is ``[step in episode, episode index]``; every step pays reward 1, the step that ends the episode
+    pays ``final_reward``. The episode terminates after ``length`` steps (or never, with ``length=None``; wrap it in
+    ``TimeLimit`` to truncate).
+
+    :param length: steps per episode, or None
+    :param final_reward: reward of the terminal step
+    :param action_space: action space (``Discrete(2)`` by default)
+    """
+
+    def __init__(self, length: int | None = 5, final_reward: float = 10.0, action_space: spaces.Space | None = None):
+        self.length = length
+        self.final_reward = final_reward
+        self.observation_space = spaces.Box(-1e6, 1e6, (2,), np.float32)
+        self.action_space = action_space if action_space is not None else spaces.Discrete(2)
+        self.t = 0
+        self.episode = -1
+
+    def _obs(self) -> np.ndarray:
+        return np.array([self.t, self.episode], dtype=np.float32)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
+        super().reset(seed=seed)
+        self.t = 0
+        self.episode += 1
+        return self._obs(), {}
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        self.t += 1
+        terminated = self.length is not None and self.t >= self.length
+        reward = self.final_reward if terminated else 1.0
+        return self._obs(), reward, terminated, False, {}
+
+
+class SmallDictEnv(gym.Env):
+    """Dict observations (a 16x16x1 uint8 image, channel-last, and a float vector), 12-step episodes.
+
+    :param discrete: Discrete(3) actions, else Box(-2, 2, (2,))
+    """
+
+    def __init__(self, discrete: bool = True):
+        self.observation_space = spaces.Dict(
+            {
+                "img": spaces.Box(0, 255, (16, 16, 1), np.uint8),
+                "vec": spaces.Box(-1.0, 1.0, (3,), np.float32),
+            }
+        )
+        self.action_space = spaces.Discrete(3) if discrete else spaces.Box(-2.0, 2.0, (2,), np.float32)
+        self.t = 0
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        super().reset(seed=seed)
+        self.t = 0
+        return self.observation_space.sample(), {}
+
+    def step(self, action: Any) -> tuple[dict, float, bool, bool, dict]:
+        self.t += 1
+        return self.observation_space.sample(), float(self.t % 3 == 0), self.t >= 12, False, {}
