@@ -8,6 +8,24 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+#: Tiny world model shared by the world-model and subactor tests (two S5 layers, widths of 16).
+TINY_WORLD_MODEL: dict[str, Any] = dict(
+    s5_layers=2,
+    s5_model_dim=16,
+    s5_state_dim=8,
+    s5_hippo_blocks=2,
+    dropout=0.0,
+    deter_dim=16,
+    stoch_groups=4,
+    stoch_classes=4,
+    hidden=16,
+    cnn_depth=2,
+    mlp_units=16,
+    mlp_layers=1,
+    head_units=16,
+    head_layers=1,
+)
+
 #: Tiny networks: every code path of the small preset, a fraction of the cost.
 TINY_OVERRIDES: dict[str, Any] = {
     "world_model": {

@@ -9,6 +9,7 @@ import pytest
 import torch as th
 import torch.nn.functional as F
 from gymnasium import spaces
+from hieros_helpers import TINY_WORLD_MODEL
 
 from sb3_hieros.agent.subactor import Subactor, action_layout, subgoal_space
 from sb3_hieros.agent.world_model import LatentState
@@ -16,23 +17,7 @@ from sb3_hieros.buffers import SequenceSamples
 from sb3_hieros.config import get_preset
 
 B, T, H = 2, 8, 3
-TINY_WM = dict(
-    s5_layers=2,
-    s5_model_dim=16,
-    s5_state_dim=8,
-    s5_hippo_blocks=2,
-    dropout=0.0,
-    deter_dim=16,
-    stoch_groups=4,
-    stoch_classes=4,
-    hidden=16,
-    cnn_depth=2,
-    mlp_units=16,
-    mlp_layers=1,
-    head_units=16,
-    head_layers=1,
-    warmup=0,
-)
+TINY_WM = {**TINY_WORLD_MODEL, "warmup": 0}
 VECTOR = spaces.Box(-5.0, 5.0, (5,), np.float32)
 IMAGE = spaces.Box(0, 255, (3, 16, 16), np.uint8)
 

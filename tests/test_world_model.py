@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
+from hieros_helpers import TINY_WORLD_MODEL
 
 from sb3_hieros.agent.world_model import (
     LatentState,
@@ -22,22 +23,7 @@ from sb3_hieros.agent.world_model import (
 from sb3_hieros.config import WorldModelConfig
 
 KINDS = ("s5", "rssm")
-TINY = dict(
-    s5_layers=2,
-    s5_model_dim=16,
-    s5_state_dim=8,
-    s5_hippo_blocks=2,
-    dropout=0.0,
-    deter_dim=16,
-    stoch_groups=4,
-    stoch_classes=4,
-    hidden=16,
-    cnn_depth=2,
-    mlp_units=16,
-    mlp_layers=1,
-    head_units=16,
-    head_layers=1,
-)
+TINY = TINY_WORLD_MODEL
 
 
 def tiny_config(kind: str, **changes) -> WorldModelConfig:
