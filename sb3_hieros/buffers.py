@@ -218,8 +218,10 @@ class SequenceReplayBuffer(ReplayBuffer):
     # ----------------------------------------------------------------------------------------------------
     # writing
 
-    def _check_obs(self, obs: np.ndarray | Mapping[str, np.ndarray], name: str) -> dict[str, np.ndarray]:
-        n = self.n_envs
+    def _check_obs(
+        self, obs: np.ndarray | Mapping[str, np.ndarray], name: str, n: int | None = None
+    ) -> dict[str, np.ndarray]:
+        n = self.n_envs if n is None else n
         if self._dict_obs:
             if not isinstance(obs, Mapping) or set(obs.keys()) != set(self.observations.keys()):  # type: ignore[union-attr]
                 got = sorted(obs.keys()) if isinstance(obs, Mapping) else type(obs).__name__
@@ -234,13 +236,13 @@ class SequenceReplayBuffer(ReplayBuffer):
             checked[key] = _check_shape(value, shape, f"{name}[{key!r}]" if key else name, also)
         return checked
 
-    def _check_action(self, action: np.ndarray) -> np.ndarray:
-        n, dim = self.n_envs, self.action_dim
+    def _check_action(self, action: np.ndarray, n: int | None = None) -> np.ndarray:
+        n, dim = (self.n_envs if n is None else n), self.action_dim
         # SB3 passes (n_envs, *action_space.shape); one-dimensional actions may come as (n_envs,)
         also = [(n, *self.action_space.shape)] + ([(n,)] if dim == 1 else [])
         return _check_shape(action, (n, dim), "action", tuple(s for s in dict.fromkeys(also) if s != (n, dim)))
 
-    def _check_subgoal(self, subgoal: np.ndarray | None) -> np.ndarray | None:
+    def _check_subgoal(self, subgoal: np.ndarray | None, n: int | None = None) -> np.ndarray | None:
         if self.subgoal_shape is None:
             if subgoal is not None:
                 raise ValueError(
@@ -250,7 +252,7 @@ class SequenceReplayBuffer(ReplayBuffer):
             return None
         if subgoal is None:
             raise ValueError(f"subgoal is required: this buffer stores subgoals of shape {self.subgoal_shape}")
-        return _check_shape(subgoal, (self.n_envs, *self.subgoal_shape), "subgoal")
+        return _check_shape(subgoal, (self.n_envs if n is None else n, *self.subgoal_shape), "subgoal")
 
     def _on_rows_written(self, rows: np.ndarray, envs: np.ndarray) -> None:
         """Hook called after rows ``rows`` of streams ``envs`` received new steps (before the heads advance)."""
@@ -359,25 +361,46 @@ class SequenceReplayBuffer(ReplayBuffer):
         is_first: np.ndarray,
         is_terminal: np.ndarray,
         subgoal: np.ndarray | None = None,
+        envs: np.ndarray | None = None,
     ) -> None:
         """Store one step per env directly in the row convention (for HIEROS's higher levels).
 
-        :param obs: o_t, ``(n_envs, *obs_shape)`` (or a dict of such arrays)
-        :param action: a_{t-1}, the action that led to o_t, ``(n_envs, action_dim)``; ignored where ``is_first``
-        :param reward: r_t, received on arriving at o_t, ``(n_envs,)``; ignored where ``is_first``
-        :param is_first: ``(n_envs,)`` bool, o_t starts an episode
-        :param is_terminal: ``(n_envs,)`` bool, o_t is terminal
-        :param subgoal: g_t, the subgoal in force at o_t, ``(n_envs, *subgoal_shape)``; required iff the buffer
+        With ``envs`` only those streams get a row (each keeps its own write head), e.g. at one env's episode end;
+        every array then has ``m = len(envs)`` rows instead of ``n_envs``.
+
+        :param obs: o_t, ``(m, *obs_shape)`` (or a dict of such arrays)
+        :param action: a_{t-1}, the action that led to o_t, ``(m, action_dim)``; ignored where ``is_first``
+        :param reward: r_t, received on arriving at o_t, ``(m,)``; ignored where ``is_first``
+        :param is_first: ``(m,)`` bool, o_t starts an episode
+        :param is_terminal: ``(m,)`` bool, o_t is terminal
+        :param subgoal: g_t, the subgoal in force at o_t, ``(m, *subgoal_shape)``; required iff the buffer
             has a ``subgoal_shape``
+        :param envs: distinct stream indices in ``[0, n_envs)``, or None for all streams (``m = n_envs``)
         """
-        n = self.n_envs
-        obs_d = self._check_obs(obs, "obs")
-        action = self._check_action(action)
+        if envs is None:
+            envs = np.arange(self.n_envs)
+        else:
+            envs = np.asarray(envs)
+            if (
+                envs.ndim != 1
+                or envs.size == 0
+                or not np.issubdtype(envs.dtype, np.integer)
+                or envs.min() < 0
+                or envs.max() >= self.n_envs
+                or np.unique(envs).size != envs.size
+            ):
+                raise ValueError(
+                    f"envs must be a non-empty 1-d array of distinct integer stream indices in [0, {self.n_envs}), "
+                    f"got {envs.tolist()}"
+                )
+        n = int(envs.size)
+        obs_d = self._check_obs(obs, "obs", n)
+        action = self._check_action(action, n)
         reward = _check_shape(reward, (n,), "reward")
         is_first = _check_shape(is_first, (n,), "is_first").astype(bool)
         is_terminal = _check_shape(is_terminal, (n,), "is_terminal").astype(bool)
-        subgoal = self._check_subgoal(subgoal)
-        self._write_rows(np.arange(n), obs_d, action, reward, is_first, is_terminal, subgoal)
+        subgoal = self._check_subgoal(subgoal, n)
+        self._write_rows(envs, obs_d, action, reward, is_first, is_terminal, subgoal)
 
     # ----------------------------------------------------------------------------------------------------
     # sampling

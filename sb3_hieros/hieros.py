@@ -42,9 +42,9 @@ This fixes the reference bugs of research note 8.4/8.5: the final reward is kept
 never lost at higher levels, one env's episode end never touches another env's reward sums, the k-step history
 never straddles an episode border, and a new episode gets fresh subgoals at once instead of its predecessor's. An
 episode start costs env j one extra (shorter) window at each level, so rows are written per env with the
-buffers' per-stream write heads (``SequenceReplayBuffer._write_rows`` for a subset of envs: ``add_step`` writes all
-envs). The summed rewards are those the agent sees (normalised under ``VecNormalize``, so the higher levels'
-replays are sampled without normalisation, while level 0's stores raw rewards and normalises when sampling).
+buffers' per-stream write heads (``SequenceReplayBuffer.add_step(..., envs=...)``). The summed rewards are those the
+agent sees (normalised under ``VecNormalize``, so the higher levels' replays are sampled without normalisation, while
+level 0's stores raw rewards and normalises when sampling).
 
 Training schedule
 -----------------
@@ -428,11 +428,8 @@ class HIEROS(OffPolicyAlgorithm):
         action = self.policy.subgoal_indices(level, prev_action)
         reward = self._reward_sums[level][envs].astype(np.float32)
         goal = None if subgoal is None else subgoal.cpu().numpy()
-        if len(envs) == buffer.n_envs:
-            buffer.add_step(obs_np, action, reward, is_first, is_terminal, goal)
-        else:
-            # per-env rows at episode borders (the buffer keeps one write head per env stream)
-            buffer._write_rows(envs, {"": obs_np}, action, reward, is_first, is_terminal, goal)
+        # per-env rows at episode borders: the buffer keeps one write head per env stream
+        buffer.add_step(obs_np, action, reward, is_first, is_terminal, goal, envs=envs)
         self._reward_sums[level][envs] = 0.0
 
     def _write_update_rows(self, step: HierarchyStep, is_first: np.ndarray) -> None:

@@ -264,6 +264,26 @@ def test_add_step_writes_dreamer_rows_directly():
         buffer.add_step(obs, np.zeros((2, 1)), np.zeros(2), np.zeros(3, bool), np.zeros(2, bool), obs[:, 1:])
 
 
+def test_add_step_with_envs_writes_only_those_streams():
+    buffer = SequenceReplayBuffer(30, OBS_SPACE, ACT_SPACE, n_envs=3, batch_length=2)
+    ones = np.ones(3, bool)
+    buffer.add_step(np.zeros((3, 2), np.float32), np.zeros((3, 1)), np.zeros(3), ones, ~ones)
+    # stream 2 alone gets a terminal row; the others keep their write heads
+    buffer.add_step(np.array([[2, 7]], np.float32), np.array([[5.0]]), np.array([3.0]), [False], [True], envs=[2])
+    np.testing.assert_array_equal(buffer.stored_steps(), [1, 1, 2])
+    samples = buffer._get_chunks(np.array([2]), np.array([0]))
+    np.testing.assert_array_equal(samples.observations[0, :, 1], [0, 7])
+    np.testing.assert_array_equal(samples.actions[0, :, 0], [0, 5])
+    np.testing.assert_array_equal(samples.rewards[0], [0, 3])
+    np.testing.assert_array_equal(samples.is_terminal[0], [False, True])
+    row = (np.zeros((1, 2), np.float32), np.zeros((1, 1)), np.zeros(1), [False], [False])
+    for bad in ([3], [1, 1], [], [[0]], [0.5]):
+        with pytest.raises(ValueError, match="envs must be a non-empty 1-d array of distinct integer"):
+            buffer.add_step(*row, envs=bad)
+    with pytest.raises(ValueError, match=r"reward has shape \(3,\), expected \(1,\)"):
+        buffer.add_step(row[0], row[1], np.zeros(3), [False], [False], envs=[0])
+
+
 def test_dict_observations_and_uint8_images():
     obs_space = spaces.Dict({"vec": OBS_SPACE, "image": spaces.Box(0, 255, (4, 4, 3), np.uint8)})
     buffer = DictSequenceReplayBuffer(40, obs_space, spaces.Discrete(3), n_envs=2, batch_length=4)

@@ -413,7 +413,11 @@ class Critic(nn.Module):
             slow.lerp_(fast.detach(), f)
 
     def loss(
-        self, feat: th.Tensor, target: th.Tensor, weights: th.Tensor | None = None
+        self,
+        feat: th.Tensor,
+        target: th.Tensor,
+        weights: th.Tensor | None = None,
+        dist: TwoHotSymlog | None = None,
     ) -> tuple[th.Tensor, dict[str, th.Tensor]]:
         """Two-hot NLL of ``target`` plus the slow-critic regulariser, weighted and averaged.
 
@@ -422,10 +426,17 @@ class Critic(nn.Module):
         :param feat: (*B, feat_dim)
         :param target: (*B) regression targets (lambda-returns), raw units
         :param weights: (*B) per-sample weights (cumulative discount), default 1
+        :param dist: the fast critic's output at ``feat`` if the caller has it already (saves a forward pass);
+            it must come from ``self(feat.detach())``
         :return: (scalar loss, metrics)
         """
         feat = feat.detach()
-        dist = self(feat)
+        if dist is None:
+            dist = self(feat)
+        elif dist.logits.shape[:-1] != feat.shape[:-1]:
+            raise ValueError(
+                f"dist has batch shape {tuple(dist.logits.shape[:-1])}, expected {tuple(feat.shape[:-1])} like feat"
+            )
         nll = -dist.log_prob(target.detach())
         loss = nll
         if self.slow_reg > 0.0:
@@ -642,17 +653,20 @@ class ActorCritic(nn.Module):
         critic_loss = feats.new_zeros(())
         for name, alpha in self.reward_weights.items():
             critic = self.critics[name]
+            fast: TwoHotSymlog | None = None
             if dynamics:
                 values = critic.value(feats, detach_params=True)  # (H+1, *B), differentiable w.r.t. feats
             else:
-                with th.no_grad():
-                    values = critic.value(feats_sg)
+                # one forward pass of the fast critic serves the returns (detached) and its own loss (s_0..s_{H-1})
+                dist_all = critic(feats_sg)  # (H+1, *B)
+                values = dist_all.mean.detach()
+                fast = TwoHotSymlog(dist_all.logits[:-1], critic.bins)
             returns = lambda_returns(
                 rewards[name][1:], values[:-1], continues[1:], values[-1], self.discount, self.lambda_
             )  # (H, *B)
             _, scale = self.normalizers[name](returns, update=update_normalizers)
             advantage = advantage + alpha * (returns - values[:-1]) / scale
-            c_loss, c_metrics = critic.loss(feats_sg[:-1], returns.detach(), w)
+            c_loss, c_metrics = critic.loss(feats_sg[:-1], returns.detach(), w, dist=fast)
             critic_loss = critic_loss + c_loss
             metrics[f"{name}/return_mean"] = returns.mean().detach()
             metrics[f"{name}/reward_mean"] = rewards[name][1:].mean().detach()

@@ -70,6 +70,24 @@ def _check_bins(bins: th.Tensor) -> None:
         raise ValueError(f"bins must be a 1-d tensor with at least 2 entries, got shape {tuple(bins.shape)}")
 
 
+def two_hot_neighbours(x: th.Tensor, bins: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+    """The two bins around ``symlog(x)`` and the weight of the upper one (the sparse form of :func:`two_hot_encode`).
+
+    :param x: (...) raw (not symlog'ed) scalars
+    :param bins: (K,) increasing bin centres in symlog space, see :func:`symlog_bins`
+    :return: (below, above, w_above), each (...): int64 indices of the lower and upper neighbour and the weight of
+        the upper one in [0, 1] (the lower one gets ``1 - w_above``)
+    """
+    _check_bins(bins)
+    y = symlog(x).clamp(bins[0], bins[-1])
+    # index of the right neighbour, in [1, K-1]
+    above = th.searchsorted(bins, y.detach().contiguous(), right=True).clamp(1, bins.numel() - 1)
+    below = above - 1
+    lo, hi = bins[below], bins[above]
+    w_above = ((y - lo) / (hi - lo)).clamp(0.0, 1.0)
+    return below, above, w_above
+
+
 def two_hot_encode(x: th.Tensor, bins: th.Tensor) -> th.Tensor:
     """Two-hot encoding of ``symlog(x)`` on ``bins`` (which live in symlog space).
 
@@ -80,35 +98,25 @@ def two_hot_encode(x: th.Tensor, bins: th.Tensor) -> th.Tensor:
     :param bins: (K,) increasing bin centres in symlog space, see :func:`symlog_bins`
     :return: (..., K) weights, two non-zero entries summing to 1
     """
-    _check_bins(bins)
-    y = symlog(x).clamp(bins[0], bins[-1])
-    num_bins = bins.numel()
-    # index of the right neighbour, in [1, K-1]
-    above = th.searchsorted(bins, y.detach().contiguous(), right=True).clamp(1, num_bins - 1)
-    below = above - 1
-    lo, hi = bins[below], bins[above]
-    w_above = ((y - lo) / (hi - lo)).clamp(0.0, 1.0)
-    w_below = 1.0 - w_above
-    out = th.zeros(*y.shape, num_bins, device=y.device, dtype=y.dtype)
-    out.scatter_(-1, below.unsqueeze(-1), w_below.unsqueeze(-1))
+    below, above, w_above = two_hot_neighbours(x, bins)
+    out = th.zeros(*w_above.shape, bins.numel(), device=w_above.device, dtype=w_above.dtype)
+    out.scatter_(-1, below.unsqueeze(-1), (1.0 - w_above).unsqueeze(-1))
     out.scatter_add_(-1, above.unsqueeze(-1), w_above.unsqueeze(-1))
     return out
 
 
 def _symmetric_expectation(probs: th.Tensor, bins: th.Tensor) -> th.Tensor:
-    """``(probs * bins).sum(-1)``, summed from both ends towards the centre bin.
+    """``(probs * bins).sum(-1)`` as one matrix-vector product, exactly 0 for a symmetric ``probs``.
 
-    With symmetric bins and a symmetric ``probs`` (e.g. the uniform output of a zero-initialised head) the result is
-    exactly 0, which a plain left-to-right sum does not guarantee in floating point.
+    For antisymmetric bins (``bins[k] == -bins[K-1-k]``, as :func:`symlog_bins` makes them) the sum is computed as
+    ``(p_right - flip(p_left)) @ bins_right``, so the uniform output of a zero-initialised head decodes to exactly
+    0, which a plain left-to-right sum does not guarantee in floating point. Other bins use ``probs @ bins``.
     """
     num_bins = bins.numel()
     mid = (num_bins - 1) // 2
-    left = (probs[..., :mid] * bins[:mid]).flip(-1)
-    centre = probs[..., mid] * bins[mid]
-    right = probs[..., mid + 1 :] * bins[mid + 1 :]
-    if left.shape[-1] == right.shape[-1]:
-        return (left + right).sum(-1) + centre
-    return left.sum(-1) + right.sum(-1) + centre
+    if num_bins % 2 == 1 and th.equal(bins[mid + 1 :], -bins[:mid].flip(0)):
+        return (probs[..., mid + 1 :] - probs[..., :mid].flip(-1)) @ bins[mid + 1 :]
+    return probs @ bins
 
 
 class TwoHotSymlog:
@@ -155,8 +163,11 @@ class TwoHotSymlog:
                 f"target shape {tuple(target.shape)} must equal the batch shape of logits "
                 f"{tuple(self.logits.shape[:-1])}"
             )
-        weights = two_hot_encode(target.detach(), self.bins)
-        return (weights * th.log_softmax(self.logits, -1)).sum(-1)
+        below, above, w_above = two_hot_neighbours(target.detach(), self.bins)
+        log_probs = th.log_softmax(self.logits, -1)
+        lp_below = log_probs.gather(-1, below.unsqueeze(-1)).squeeze(-1)
+        lp_above = log_probs.gather(-1, above.unsqueeze(-1)).squeeze(-1)
+        return lp_below + w_above * (lp_above - lp_below)
 
 
 def unimix_probs(logits: th.Tensor, unimix: float) -> th.Tensor:
