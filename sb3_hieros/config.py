@@ -283,7 +283,12 @@ def paper_config() -> HierosConfig:
 
 
 def small_config() -> HierosConfig:
-    """A CPU preset: same code paths, 2 S5 blocks, narrower widths, a lower train ratio."""
+    """A CPU preset: same code paths, 2 S5 blocks, narrower widths, a lower train ratio.
+
+    Tuned for learning speed per CPU second on CartPole-v1 (``benchmarks/sample_efficiency.py``): small models
+    tolerate larger learning rates (world model 1e-3, actor and critics 3e-4), and 16-step chunks halve the cost of
+    an update (B*T imagination starts), so the same train ratio buys twice the updates.
+    """
     return HierosConfig(
         world_model=WorldModelConfig(
             s5_layers=2,
@@ -298,14 +303,14 @@ def small_config() -> HierosConfig:
             cnn_depth=16,
             mlp_units=256,
             head_units=128,
-            lr=3e-4,
+            lr=1e-3,
             warmup=100,
         ),
-        actor_critic=ActorCriticConfig(units=128, actor_lr=1e-4, critic_lr=1e-4),
+        actor_critic=ActorCriticConfig(units=128, actor_lr=3e-4, critic_lr=3e-4),
         subgoal=SubgoalConfig(units=128),
         n_levels=2,
         batch_size=16,
-        batch_length=32,
+        batch_length=16,
         train_ratio=64.0,
         buffer_size=100_000,
         learning_starts=500,
