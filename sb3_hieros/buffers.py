@@ -51,13 +51,15 @@ generator (it pickles cleanly for ``save_replay_buffer`` / ``load_replay_buffer`
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import warnings
+from collections.abc import Mapping, Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import BaseBuffer, ReplayBuffer
+from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_hieros.etbs import (
@@ -72,6 +74,51 @@ ETBS_BUFFER_MODES = ("etbs", "uniform", "reference", "count", "meanfield")
 def _global_uniform(n: int) -> np.ndarray:
     """``n`` uniform numbers in [0, 1) from numpy's global state, which SB3's ``set_random_seed`` seeds."""
     return np.random.random_sample(n)  # noqa: NPY002 (deliberate: reproducible under SB3 seeding, picklable)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available for new allocations: ``psutil.virtual_memory().available`` if psutil is installed,
+    else ``MemAvailable`` of ``/proc/meminfo``; None when neither can be read.
+
+    :return: bytes, or None
+    """
+    try:
+        import psutil
+
+        return int(psutil.virtual_memory().available)
+    except ImportError:
+        pass
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def warn_if_replay_exceeds_memory(nbytes: Sequence[int], names: Sequence[str] | None = None) -> bool:
+    """Warn (``UserWarning``, before anything is allocated) when replay arrays of ``sum(nbytes)`` bytes will not fit
+    into the available memory (SB3's ``ReplayBuffer`` check, done before allocation and for all levels together).
+
+    :param nbytes: estimated bytes of each buffer (:meth:`SequenceReplayBuffer.estimate_nbytes`)
+    :param names: a name per buffer for the message (e.g. ``"level 1"``)
+    :return: whether the warning was issued
+    """
+    available = available_memory()
+    total = int(sum(nbytes))
+    if available is None or total <= available:
+        return False
+    parts = ""
+    if names is not None and len(nbytes) > 1:
+        parts = " (" + ", ".join(f"{name}: {n / 1e9:.2f} GB" for name, n in zip(names, nbytes, strict=True)) + ")"
+    warnings.warn(
+        f"The replay buffer needs about {total / 1e9:.2f} GB{parts}, but only {available / 1e9:.2f} GB of memory "
+        "is available: the system may start swapping or kill the process once the buffer fills; reduce buffer_size",
+        stacklevel=3,
+    )
+    return True
 
 
 class SequenceSamples(NamedTuple):
@@ -163,6 +210,10 @@ class SequenceReplayBuffer(ReplayBuffer):
         self.handle_timeout_termination = handle_timeout_termination
         self.batch_length = int(batch_length)
         self.subgoal_shape = subgoal_shape
+        # before allocating: the arrays below are lazily committed, so the failure would come much later
+        warn_if_replay_exceeds_memory(
+            [self.estimate_nbytes(buffer_size, observation_space, action_space, n_envs, subgoal_shape)]
+        )
 
         rows, n = self.buffer_size, self.n_envs
         self._dict_obs = isinstance(observation_space, spaces.Dict)
@@ -182,6 +233,33 @@ class SequenceReplayBuffer(ReplayBuffer):
         self.stream_pos = np.zeros(n, dtype=np.int64)
         self.stream_full = np.zeros(n, dtype=bool)
         self._expect_first = np.ones(n, dtype=bool)
+
+    @staticmethod
+    def estimate_nbytes(
+        buffer_size: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        n_envs: int = 1,
+        subgoal_shape: tuple[int, ...] | None = None,
+    ) -> int:
+        """Bytes the arrays of a buffer built with these arguments take once filled (computed without allocating).
+
+        :param buffer_size: as for the constructor (steps over all envs)
+        :param observation_space: observation space
+        :param action_space: action space
+        :param n_envs: number of envs
+        :param subgoal_shape: subgoal shape or None
+        :return: bytes of observations, actions, rewards, is_first, is_terminal and subgoals
+        """
+        rows = max(int(buffer_size) // int(n_envs), 1) * int(n_envs)
+        subspaces = (
+            observation_space.spaces.values() if isinstance(observation_space, spaces.Dict) else [observation_space]
+        )
+        obs = sum(int(np.prod(get_obs_shape(sub))) * np.dtype(sub.dtype).itemsize for sub in subspaces)  # type: ignore[arg-type]
+        action_dtype = np.dtype(ReplayBuffer._maybe_cast_dtype(action_space.dtype))
+        action = get_action_dim(action_space) * action_dtype.itemsize
+        subgoal = 0 if subgoal_shape is None else int(np.prod(subgoal_shape)) * 4
+        return rows * (obs + action + 4 + 1 + 1 + subgoal)
 
     # ----------------------------------------------------------------------------------------------------
     # bookkeeping

@@ -57,13 +57,30 @@ hierarchy still encodes every observation) or while level 0's buffer cannot samp
 
 Logging: SB3's ``rollout/*``, ``time/*``, ``train/learning_rate``, ``train/n_updates``, and
 ``train/level{i}/<metric>`` for every metric of :meth:`Subactor.train_step` (mean over the updates since the last
-dump) plus ``train/level{i}/n_updates``.
+dump) plus ``train/level{i}/n_updates`` and ``train/level{i}/skipped_updates``.
+
+Faults (see ``docs/resume.md`` for resuming a run)
+--------------------------------------------------
+* Non-finite observations (NaN/inf in a float observation, reset, step or terminal) and rewards raise ``ValueError``
+  naming the env index (and the Dict key) before they reach the replay or the networks; SB3's ``VecCheckNan``
+  wrapper works too (it also checks the actions).
+* Each optimiser step of a level (world model, actor, critic, autoencoder) is skipped when its loss or gradient norm
+  is not finite (:func:`~sb3_hieros.nn.guard.step_if_finite`): no parameter or optimiser state changes. The metrics
+  ``train/level{i}/nonfinite/<name>`` give the fraction of skipped steps, ``train/level{i}/skipped_updates`` counts the
+  updates with a skipped step, and ``max_nonfinite_updates`` such updates of one level in a row stop training with
+  ``FloatingPointError`` naming the level and the loss.
+* ``load`` refuses truncated or corrupted files and saves of other algorithms with ``ValueError``.
+* A warning estimates the replay memory of all levels before allocation when it exceeds the available memory.
 """
 
 from __future__ import annotations
 
 import io
 import pathlib
+import pickle
+import warnings
+import zipfile
+import zlib
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -72,9 +89,10 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.save_util import json_to_data, open_path
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
-from sb3_hieros.buffers import ETBSReplayBuffer, SequenceReplayBuffer
+from sb3_hieros.buffers import ETBSReplayBuffer, SequenceReplayBuffer, warn_if_replay_exceeds_memory
 from sb3_hieros.config import HierosConfig, get_preset
 from sb3_hieros.policies import (
     CnnPolicy,
@@ -84,6 +102,7 @@ from sb3_hieros.policies import (
     MlpPolicy,
     MultiInputPolicy,
     check_action_space,
+    check_finite_observations,
     check_observation_space,
 )
 
@@ -116,6 +135,45 @@ class _AddWithSubgoal:
         self.buffer.add(*args, subgoal=self.subgoal, **kwargs)
 
 
+def _check_hieros_save(path: str | pathlib.Path | io.BufferedIOBase, custom_objects: dict[str, Any] | None) -> None:
+    """Raise ``ValueError`` unless ``path`` is a readable zip whose ``data`` entry names a :class:`HierosPolicy`.
+
+    Reads only the small ``data`` entry (no tensors); a file-like ``path`` is left at its position.
+
+    :param path: what :meth:`HIEROS.load` was given
+    :param custom_objects: as for ``load``
+    """
+    file = open_path(path, "r", verbose=0, suffix="zip")
+    start = file.tell() if file.seekable() else None
+    n_entries, data = 0, None
+    try:
+        with zipfile.ZipFile(file) as archive:
+            names = archive.namelist()
+            n_entries = len(names)
+            if "data" in names:
+                data = json_to_data(archive.read("data").decode(), custom_objects=custom_objects)
+    except (zipfile.BadZipFile, zlib.error, EOFError, UnicodeDecodeError, ValueError, KeyError) as err:
+        raise ValueError(
+            f"{path} is not a readable HIEROS save (truncated or corrupted?): {type(err).__name__}: {err}"
+        ) from None
+    finally:
+        if isinstance(path, str | pathlib.Path):
+            file.close()
+        elif start is not None:
+            file.seek(start)
+    if data is None:
+        raise ValueError(
+            f"{path} is not a HIEROS save: none of its {n_entries} zip entries is 'data'; the file may be truncated"
+        )
+    policy_class = data.get("policy_class")
+    if not (isinstance(policy_class, type) and issubclass(policy_class, HierosPolicy)):
+        name = getattr(policy_class, "__qualname__", repr(policy_class))
+        raise ValueError(
+            f"{path} was not saved by HIEROS: its policy class is {name}, expected a HierosPolicy; load it with the "
+            "algorithm that saved it"
+        )
+
+
 class HIEROS(OffPolicyAlgorithm):
     """HIEROS: hierarchical imagination on S5 world models with efficient time-balanced replay (Mattes 2023).
 
@@ -136,6 +194,8 @@ class HIEROS(OffPolicyAlgorithm):
     :param replay_buffer_kwargs: extra keywords of the level-0 buffer
     :param etbs_temperature: tau of ETBS (eq. 4.21) at every level; None = preset
     :param config_overrides: changes to the preset (:meth:`HierosConfig.replace` keywords; nested sections as dicts)
+    :param max_nonfinite_updates: training stops with ``FloatingPointError`` when this many updates in a row of one
+        level had a non-finite loss or gradient (each such optimiser step is skipped, see the module docstring)
     :param policy_kwargs: keywords of the policy (``decoded_subgoal_input``, ``bf16``, ``compile``)
     :param stats_window_size: window of the rollout statistics
     :param tensorboard_log: tensorboard log directory
@@ -171,6 +231,7 @@ class HIEROS(OffPolicyAlgorithm):
         replay_buffer_kwargs: dict[str, Any] | None = None,
         etbs_temperature: float | None = None,
         config_overrides: dict[str, Any] | None = None,
+        max_nonfinite_updates: int = 10,
         policy_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
@@ -186,6 +247,10 @@ class HIEROS(OffPolicyAlgorithm):
                 "policy_kwargs must not contain 'config': HIEROS builds the policy's config from preset, "
                 "config_overrides and its own keywords; put configuration changes into config_overrides"
             )
+        if isinstance(max_nonfinite_updates, bool) or not isinstance(max_nonfinite_updates, int | np.integer):
+            raise ValueError(f"max_nonfinite_updates must be an int >= 1, got {max_nonfinite_updates!r}")
+        if max_nonfinite_updates < 1:
+            raise ValueError(f"max_nonfinite_updates must be an int >= 1, got {max_nonfinite_updates!r}")
         base = get_preset(preset).replace(**(config_overrides or {}))
         given = {
             "buffer_size": buffer_size,
@@ -231,6 +296,7 @@ class HIEROS(OffPolicyAlgorithm):
         self.subgoal_interval = resolved["subgoal_interval"]
         self.etbs_temperature = resolved["etbs_temperature"]
         self.config_overrides = dict(config_overrides or {})
+        self.max_nonfinite_updates = int(max_nonfinite_updates)
         self.config: HierosConfig | None = None
         # training-time hierarchy (built in _setup_learn, never saved)
         self._hier: HierarchyState | None = None
@@ -239,6 +305,9 @@ class HIEROS(OffPolicyAlgorithm):
         # update schedule (saved)
         self._update_budget = 0.0
         self._level_updates: list[int] | None = None
+        # non-finite guard, per level: updates with a skipped optimiser step (total and current run of them)
+        self._skipped_updates: list[int] | None = None
+        self._nonfinite_streak: list[int] | None = None
         if getattr(self, "observation_space", None) is not None:
             check_observation_space(self.observation_space)
             check_action_space(self.action_space)
@@ -272,6 +341,9 @@ class HIEROS(OffPolicyAlgorithm):
             self.replay_buffer = self._make_replay_buffers()
         if self._level_updates is None or len(self._level_updates) != self.config.n_levels:
             self._level_updates = [0] * self.config.n_levels
+        for name in ("_skipped_updates", "_nonfinite_streak"):
+            if getattr(self, name, None) is None or len(getattr(self, name)) != self.config.n_levels:
+                setattr(self, name, [0] * self.config.n_levels)
         self._hier = None
         self._reward_sums = None
         self._subgoal0 = None
@@ -301,6 +373,37 @@ class HIEROS(OffPolicyAlgorithm):
         if issubclass(buffer_class, ETBSReplayBuffer):
             kwargs.update(etbs)
         kwargs.update(self.replay_buffer_kwargs)
+        # one warning for all levels together, before anything is allocated (then not again per buffer)
+        spaces_per_level = [(self.observation_space, self.action_space)] + [
+            (level.observation_space, level.action_space) for level in levels[1:]
+        ]
+        estimates = [
+            SequenceReplayBuffer.estimate_nbytes(
+                self._level_buffer_size(i),
+                obs_space,
+                act_space,
+                self.n_envs,
+                subgoal_shape if i < cfg.n_levels - 1 else None,
+            )
+            for i, (obs_space, act_space) in enumerate(spaces_per_level)
+        ]
+        warned = warn_if_replay_exceeds_memory(estimates, [f"level {i}" for i in range(cfg.n_levels)])
+        with warnings.catch_warnings():
+            if warned:
+                warnings.filterwarnings("ignore", message="The replay buffer needs about")
+            return self._allocate_replay_buffers(buffer_class, kwargs, levels, subgoal_shape, etbs)
+
+    def _allocate_replay_buffers(
+        self,
+        buffer_class: type[SequenceReplayBuffer],
+        kwargs: dict[str, Any],
+        levels: list[Any],
+        subgoal_shape: tuple[int, ...],
+        etbs: dict[str, Any],
+    ) -> SequenceReplayBuffer:
+        """Build the buffers :meth:`_make_replay_buffers` planned."""
+        assert self.config is not None
+        cfg = self.config
         buffer = buffer_class(
             self._level_buffer_size(0),
             self.observation_space,
@@ -397,6 +500,7 @@ class HIEROS(OffPolicyAlgorithm):
         if action_noise is not None:
             raise ValueError("HIEROS explores with its stochastic actors; action_noise must be None")
         assert self._hier is not None and self._reward_sums is not None
+        check_finite_observations(self._last_obs)  # type: ignore[arg-type]
         policy = self.policy
         obs, _ = policy.obs_to_tensor(self._last_obs)  # type: ignore[arg-type]
         is_first = th.as_tensor(np.asarray(self._last_episode_starts, dtype=bool), device=self.device)
@@ -497,6 +601,22 @@ class HIEROS(OffPolicyAlgorithm):
         infos: list[dict[str, Any]],
     ) -> None:
         """Level 0 through SB3 (with the subgoal in force), then the higher levels' reward sums and terminal rows."""
+        check_finite_observations(new_obs, "new observation")
+        bad = np.flatnonzero(~np.isfinite(np.asarray(reward, dtype=np.float64).reshape(-1)))
+        if bad.size:
+            raise ValueError(
+                f"reward of env {', '.join(str(j) for j in bad)} is not finite "
+                f"({np.asarray(reward).reshape(-1)[bad].tolist()}); fix the environment or wrap the VecEnv in "
+                "VecCheckNan(env, raise_exception=True)"
+            )
+        for j in np.flatnonzero(np.asarray(dones, dtype=bool).reshape(-1)):
+            final = infos[j].get("terminal_observation")
+            if final is not None:
+                check_finite_observations(
+                    {k: v[None] for k, v in final.items()} if isinstance(final, dict) else np.asarray(final)[None],
+                    "terminal observation",
+                    envs=[int(j)],
+                )
         target: Any = replay_buffer if self._subgoal0 is None else _AddWithSubgoal(replay_buffer, self._subgoal0)  # type: ignore[arg-type]
         super()._store_transition(target, buffer_action, new_obs, reward, dones, infos)
         assert self._reward_sums is not None
@@ -554,11 +674,44 @@ class HIEROS(OffPolicyAlgorithm):
                 self._level_updates[i] += 1
                 for key, value in metrics.items():
                     self.logger.record_mean(f"train/level{i}/{key}", value)
+                self._count_nonfinite(i, metrics)
             self._n_updates += 1
         self.policy.set_training_mode(False)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         for i, count in enumerate(self._level_updates):
             self.logger.record(f"train/level{i}/n_updates", count, exclude="tensorboard")
+        for i, count in enumerate(self._skipped_updates or []):
+            self.logger.record(f"train/level{i}/skipped_updates", count)
+
+    def _count_nonfinite(self, level: int, metrics: dict[str, float]) -> None:
+        """Count an update of ``level`` with a skipped (non-finite) optimiser step; stop after too many in a row.
+
+        :param level: the level that was just updated
+        :param metrics: its :meth:`Subactor.train_step` metrics (``nonfinite/<name>`` = 1.0 for a skipped step)
+        """
+        assert self._skipped_updates is not None and self._nonfinite_streak is not None
+        skipped = [key.split("/", 1)[1] for key, value in metrics.items() if key.startswith("nonfinite/") and value]
+        if not skipped:
+            self._nonfinite_streak[level] = 0
+            return
+        self._skipped_updates[level] += 1
+        self._nonfinite_streak[level] += 1
+        self.logger.record(f"train/level{level}/skipped_updates", self._skipped_updates[level])
+        if self._nonfinite_streak[level] >= self.max_nonfinite_updates:
+            prefixes = {"world_model": "wm", "actor": "actor", "critic": "critic", "autoencoder": "ae"}
+            details = []
+            for name in skipped:
+                prefix = prefixes.get(name, name)
+                values = [
+                    f"{key}={metrics[key]:.4g}" for key in (f"{prefix}/loss", f"{prefix}/grad_norm") if key in metrics
+                ]
+                details.append(f"{name} loss ({', '.join(values)})" if values else f"{name} loss")
+            raise FloatingPointError(
+                f"level {level}: {self._nonfinite_streak[level]} updates in a row had a non-finite loss or gradient "
+                f"(max_nonfinite_updates={self.max_nonfinite_updates}); last skipped: {'; '.join(details)}. The "
+                "parameters were left at their last finite values; check the environment's observations and rewards, "
+                "or lower the learning rates"
+            )
 
     def learn(
         self: SelfHIEROS,
@@ -589,6 +742,49 @@ class HIEROS(OffPolicyAlgorithm):
         )
 
     # ------------------------------------------------------------------------------------------------ saving
+
+    @classmethod
+    def load(  # type: ignore[override]
+        cls: type[SelfHIEROS],
+        path: str | pathlib.Path | io.BufferedIOBase,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs: Any,
+    ) -> SelfHIEROS:
+        """SB3's ``load``, refusing files that are not an intact HIEROS save with a short ``ValueError``.
+
+        A truncated or corrupted zip, a zip without HIEROS's data, or a save of another algorithm (e.g. DQN) raise
+        ``ValueError`` before anything is built; a corrupted tensor file inside the zip raises ``ValueError`` with
+        torch's message instead of torch's traceback. An env whose spaces differ from the saved ones raises SB3's
+        ``ValueError``.
+
+        :param path: zip file (``.zip`` may be omitted) or file-like object
+        :param env: environment to attach (spaces must match the saved ones), or None
+        :param device: torch device
+        :param custom_objects: values replacing saved attributes (see SB3)
+        :param print_system_info: print the system info of the save
+        :param force_reset: reset the env before training continues (SB3: avoids unexpected behaviour)
+        :param kwargs: attributes to set on the loaded model (e.g. ``learning_starts=0``)
+        :return: the model
+        """
+        _check_hieros_save(path, custom_objects)
+        try:
+            return super().load(  # type: ignore[return-value]
+                path,
+                env=env,
+                device=device,
+                custom_objects=custom_objects,
+                print_system_info=print_system_info,
+                force_reset=force_reset,
+                **kwargs,
+            )
+        except (RuntimeError, EOFError, zipfile.BadZipFile, zlib.error, pickle.UnpicklingError) as err:
+            raise ValueError(
+                f"{path} could not be loaded as a HIEROS model (corrupted file?): {type(err).__name__}: {err}"
+            ) from None
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "config", "_hier", "_reward_sums", "_subgoal0"]

@@ -58,6 +58,7 @@ __all__ = [
     "MlpPolicy",
     "MultiInputPolicy",
     "check_action_space",
+    "check_finite_observations",
     "check_observation_space",
     "config_from_dict",
 ]
@@ -110,6 +111,42 @@ def check_action_space(action_space: spaces.Space) -> None:
         f"action space {action_space} ({type(action_space).__name__}) is not supported by HIEROS; "
         "supported: Discrete and 1-d Box"
     )
+
+
+def check_finite_observations(
+    observation: np.ndarray | th.Tensor | Mapping[str, np.ndarray | th.Tensor],
+    what: str = "observation",
+    envs: Sequence[int] | None = None,
+) -> None:
+    """Raise ``ValueError`` if a batch of observations holds NaN or inf, naming the rows (env indices) and the key.
+
+    Integer arrays (uint8 images) cannot hold NaN and are not scanned.
+
+    :param observation: (n, *obs_shape) array or tensor, or a dict of them (Dict spaces); row j is env j
+    :param what: what the observation is, for the message (e.g. ``"terminal observation"``)
+    :param envs: the env index of each row, if row j is not env j
+    """
+    items = observation.items() if isinstance(observation, Mapping) else [(None, observation)]
+    for key, value in items:
+        if isinstance(value, th.Tensor):
+            if not (value.is_floating_point() or value.is_complex()) or value.dim() == 0:
+                continue
+            bad = (~th.isfinite(value).reshape(value.shape[0], -1).all(1)).cpu().numpy()
+        else:
+            array = np.asarray(value)
+            if not np.issubdtype(array.dtype, np.inexact) or array.ndim == 0:
+                continue
+            bad = ~np.isfinite(array.reshape(array.shape[0], -1)).all(1)
+        if bad.any():
+            rows = list(range(len(bad))) if envs is None else list(envs)
+            where = f" (key {key!r})" if key is not None else ""
+            bad_envs = ", ".join(str(rows[j]) for j in np.flatnonzero(bad))
+            raise ValueError(
+                f"{what}{where} of env {bad_envs} contains NaN or inf; HIEROS "
+                "cannot learn from or act on non-finite observations. Fix the environment, or wrap the VecEnv in "
+                "stable_baselines3.common.vec_env.VecCheckNan(env, raise_exception=True) to stop at the step that "
+                "produced it"
+            )
 
 
 def config_from_dict(config: Mapping[str, Any] | HierosConfig | None) -> HierosConfig:
@@ -542,6 +579,7 @@ class HierosPolicy(BasePolicy):
                 "vs `obs = vec_env.reset()` (SB3 VecEnv)."
             )
         obs_tensor, vectorized_env = self.obs_to_tensor(observation)
+        check_finite_observations(obs_tensor)
         n = _batch_size(obs_tensor)
         if state is None:
             hier = self.initial_hierarchy_state(n)

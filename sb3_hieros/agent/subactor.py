@@ -67,6 +67,7 @@ from sb3_hieros.agent.world_model import (
 )
 from sb3_hieros.buffers import SequenceSamples
 from sb3_hieros.config import HierosConfig, SubgoalConfig
+from sb3_hieros.nn.guard import step_if_finite
 
 __all__ = ["SUBGOAL_SUCCESS_THRESHOLD", "Subactor", "action_layout", "subgoal_space"]
 
@@ -493,6 +494,17 @@ class Subactor(nn.Module):
         trajectory = LatentState(*(th.stack(fields, 0) for fields in zip(*states, strict=True)))
         return trajectory, th.stack(feats, 0), th.stack(actions, 0), th.stack(rewards, 0), th.stack(conts, 0)
 
+    @staticmethod
+    def _guarded_step(loss: th.Tensor, optimizer: th.optim.Optimizer, *grad_norms: th.Tensor) -> float:
+        """``optimizer.step()`` unless ``loss`` or a gradient norm is non-finite (:func:`step_if_finite`).
+
+        :param loss: the back-propagated 0-d loss
+        :param optimizer: the optimiser to step
+        :param grad_norms: the clipped groups' total gradient norms
+        :return: the metric ``nonfinite/<optimiser>``: 1.0 if the step was skipped, else 0.0
+        """
+        return 0.0 if step_if_finite(optimizer, loss, *grad_norms) else 1.0
+
     def train_step(self, samples: Any) -> dict[str, float]:
         """One training iteration of this level on a batch of chunks (Algorithm 2, thesis 4.6.2).
 
@@ -513,7 +525,10 @@ class Subactor(nn.Module):
         ``subgoal/final_reward`` = mean subgoal reward of the last imagined state s_H and ``subgoal/success`` = the
         fraction of rollouts whose s_H reaches a subgoal reward >= :data:`SUBGOAL_SUCCESS_THRESHOLD` (below the top
         only); ``imag/continue`` = mean continue probability of s_1..s_H; ``ae/*`` (autoencoder loss terms,
-        ``grad_norm``).
+        ``grad_norm``); ``nonfinite/<name>`` for ``world_model``, ``actor``, ``critic`` and ``autoencoder``: 1.0 when
+        that step was skipped because its loss or gradient norm was not finite (no parameter or optimiser state
+        changes; a skipped actor or critic step also undoes the return normalisers' update, a skipped critic step
+        leaves the slow critics alone), else 0.0.
 
         :param samples: :class:`~sb3_hieros.buffers.SequenceSamples` (B, T, ...): ``actions[:, t]`` = a_{t-1} (float
             vectors or, for discrete spaces, indices, see :meth:`action_vectors`); ``subgoals`` (B, T, n_cat *
@@ -527,6 +542,7 @@ class Subactor(nn.Module):
         # (1) world model
         wm_metrics, post = self.world_model.train_step(batch, self.wm_optimizer, self.wm_scheduler)
         metrics = {f"wm/{k}": float(v) for k, v in wm_metrics.items()}
+        metrics["nonfinite/world_model"] = metrics.pop("wm/nonfinite")
         metrics["wm/lr"] = float(self.wm_optimizer.param_groups[0]["lr"])
 
         # (2) imagination from every posterior state, subgoal of the row held fixed
@@ -553,19 +569,24 @@ class Subactor(nn.Module):
         continues = th.cat([first_cont.unsqueeze(0), cont_pred[1:].detach()], 0)  # (H+1, N)
 
         # (4) actor and critics
+        retnorm_state = {k: v.clone() for k, v in self.actor_critic.normalizers.state_dict().items()}
         actor_loss, critic_loss, ac_metrics = self.actor_critic.loss(feats, actions, rewards, continues)
         actor_params = list(self.actor_critic.actor_parameters())
         self.actor_optimizer.zero_grad(set_to_none=True)
         actor_loss.backward(inputs=actor_params)  # never accumulates into world model / autoencoder / critics
         tensors["actor/grad_norm"] = nn.utils.clip_grad_norm_(actor_params, ac_cfg.grad_clip)
-        self.actor_optimizer.step()
+        metrics["nonfinite/actor"] = self._guarded_step(actor_loss, self.actor_optimizer, tensors["actor/grad_norm"])
         critic_params = list(self.actor_critic.critic_parameters())
         self.critic_optimizer.zero_grad(set_to_none=True)
         critic_loss.backward(inputs=critic_params)
         for name, critic in self.actor_critic.critics.items():
             tensors[f"critic/{name}_grad_norm"] = nn.utils.clip_grad_norm_(critic.net.parameters(), ac_cfg.grad_clip)
-        self.critic_optimizer.step()
-        self.actor_critic.update_slow_critics()
+        norms = [tensors[f"critic/{name}_grad_norm"] for name in self.actor_critic.critics]
+        metrics["nonfinite/critic"] = self._guarded_step(critic_loss, self.critic_optimizer, *norms)
+        if metrics["nonfinite/actor"] or metrics["nonfinite/critic"]:  # keep the return statistics finite too
+            self.actor_critic.normalizers.load_state_dict(retnorm_state)
+        if not metrics["nonfinite/critic"]:
+            self.actor_critic.update_slow_critics()
 
         # (5) subgoal autoencoder on the sampled (s_0) and imagined (s_1..s_H) states
         h_all = traj.deter.detach().reshape(-1, self.h_dim)
@@ -573,7 +594,7 @@ class Subactor(nn.Module):
         self.ae_optimizer.zero_grad(set_to_none=True)
         ae_loss.backward(inputs=list(self.autoencoder.parameters()))
         tensors["ae/grad_norm"] = nn.utils.clip_grad_norm_(self.autoencoder.parameters(), self.config.subgoal.grad_clip)
-        self.ae_optimizer.step()
+        metrics["nonfinite/autoencoder"] = self._guarded_step(ae_loss, self.ae_optimizer, tensors["ae/grad_norm"])
 
         # metrics
         tensors["actor/loss"] = ac_metrics["actor_loss"]

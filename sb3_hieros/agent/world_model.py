@@ -68,6 +68,7 @@ from sb3_hieros.nn.distributions import (
     symlog_bins,
     symlog_mse,
 )
+from sb3_hieros.nn.guard import step_if_finite
 from sb3_hieros.nn.networks import MLP, ConvDecoder, ConvEncoder, preprocess_image, trunc_normal_init_
 from sb3_hieros.nn.s5 import S5Stack, compile_s5
 
@@ -856,19 +857,23 @@ class WorldModel(nn.Module):
     ) -> tuple[dict[str, float], LatentState]:
         """One gradient step on :meth:`loss` with gradient-norm clipping at ``config.grad_clip``.
 
+        The step (and the scheduler step) is skipped when the loss or the gradient norm is not finite
+        (:func:`~sb3_hieros.nn.guard.step_if_finite`); the metric ``nonfinite`` is then 1.
+
         :param samples: batch of chunks (see :meth:`loss`)
         :param optimizer: e.g. from :func:`world_model_optimizer`
         :param scheduler: optional learning-rate schedule stepped after the update
-        :return: metrics (with ``grad_norm``) and the detached posterior states (imagination starts)
+        :return: metrics (with ``grad_norm`` and ``nonfinite``) and the detached posterior states (imagination starts)
         """
         loss, metrics, post = self.loss(samples)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         grad_norm = nn.utils.clip_grad_norm_(self.parameters(), self.config.grad_clip)
-        optimizer.step()
-        if scheduler is not None:
+        stepped = step_if_finite(optimizer, loss, grad_norm)
+        if stepped and scheduler is not None:
             scheduler.step()
         metrics["grad_norm"] = float(grad_norm)
+        metrics["nonfinite"] = float(not stepped)
         return metrics, post.detach()
 
     # ---------------------------------------------------------------- imagination
