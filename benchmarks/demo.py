@@ -8,10 +8,10 @@ writes to ``--out`` (default ``results/demo/``):
 * ``evaluations.npz``: SB3's evaluation log (``timesteps``, ``results``, ``ep_lengths``);
 * ``final_eval.json``: the last evaluation (mean/std return, episode returns), steps, wall time, settings;
 * ``progress.csv``: the training log (``rollout/*``, ``time/*``, ``train/level{i}/*``);
-* ``model.zip``: the trained model (``HIEROS.load``).
-
-Decoded-subgoal pictures: pass callbacks through :func:`extra_callbacks` (the hook for the SubgoalDecodeCallback of
-the callbacks issue; it returns none yet).
+* ``model.zip``: the trained model (``HIEROS.load``);
+* ``subgoals/subgoals_<step>_env0.png``: every ``--subgoal-every`` steps (default 2000), the subgoal of every level
+  above 0 decoded into the observation space and plotted against the real observation
+  (:class:`~sb3_hieros.SubgoalDecodeCallback`, added by :func:`extra_callbacks`).
 """
 
 from __future__ import annotations
@@ -28,17 +28,17 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 
 from benchmarks._timing import environment_header
-from sb3_hieros import HIEROS
+from sb3_hieros import HIEROS, SubgoalDecodeCallback
 
 
-def extra_callbacks(out: pathlib.Path) -> list[BaseCallback]:
-    """Further callbacks of the demo (hook: decoded-subgoal pictures will be written from here into ``out``).
+def extra_callbacks(out: pathlib.Path, subgoal_every: int = 2_000) -> list[BaseCallback]:
+    """Further callbacks of the demo: decoded-subgoal pictures written into ``out / "subgoals"``.
 
     :param out: output directory
+    :param subgoal_every: environment steps between two pictures
     :return: callbacks to add to training
     """
-    del out
-    return []
+    return [SubgoalDecodeCallback(every=subgoal_every, save_dir=out / "subgoals", tensorboard=False)]
 
 
 def plot_learning_curve(evaluations: pathlib.Path, path: pathlib.Path, title: str) -> None:
@@ -84,6 +84,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--preset", default="small", choices=("small", "paper"), help="hyperparameter preset")
     parser.add_argument("--env", default="CartPole-v1", help="gymnasium environment id")
     parser.add_argument(
+        "--subgoal-every", type=int, default=2_000, help="decoded-subgoal PNG every N environment steps"
+    )
+    parser.add_argument(
         "--threads", type=int, default=None, help="torch CPU threads (default: torch's, i.e. OMP_NUM_THREADS)"
     )
     args = parser.parse_args(argv)
@@ -108,7 +111,7 @@ def main(argv: list[str] | None = None) -> dict:
         verbose=1,
     )
     start = time.perf_counter()
-    model.learn(args.steps, callback=[evaluation, *extra_callbacks(out)])
+    model.learn(args.steps, callback=[evaluation, *extra_callbacks(out, args.subgoal_every)])
     wall = time.perf_counter() - start
     model.save(out / "model.zip")
 

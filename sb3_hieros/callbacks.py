@@ -1,0 +1,576 @@
+"""SB3 callbacks that show what HIEROS plans and what its world model imagines.
+
+* :class:`SubgoalDecodeCallback`: the current subgoal of every level above 0, decoded down to the environment's
+  observation space (thesis 4.3.2, last paragraph; Figs 5.5, 5.6, 5.9), next to the real observation.
+* :class:`ImaginationCallback`: a recent real chunk of level 0's replay against the world model's open-loop
+  imagination with the recorded actions, and the per-step prediction error (thesis Fig. 5.1).
+
+Both write PNGs under ``save_dir`` and, when the model's logger has a TensorBoard output (``tensorboard_log``), SB3
+``Image`` values to it. The reward terms of every level (extrinsic, subgoal, novelty; Fig. 5.3) need no callback:
+:class:`~sb3_hieros.HIEROS` logs them as ``train/level{i}/reward/<term>`` (means over the updates since the last
+dump).
+
+Cost and side effects. Between two of its ``every`` steps a callback only compares two integers. When it draws, it
+runs under ``torch.no_grad`` with the policy in evaluation mode (modes restored afterwards), draws nothing at random
+(posterior and prior modes), never samples from a replay buffer (it reads the newest rows directly), and restores
+the global random states of torch (CPU and initialised CUDA devices), numpy (which the replay samplers use) and
+Python's ``random`` afterwards. So training with and without these callbacks gives the same parameters under the
+same seed (tested).
+
+Images go to TensorBoard straight through the logger's TensorBoard output at the current step (not through
+``logger.record``, which keeps only the last value of a key until the next dump, so images drawn between two dumps
+would be lost, and which would have other output formats reject the image).
+
+Rendering needs matplotlib (the ``extra`` dependencies); it is imported when a callback is created.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import pathlib
+import random
+import warnings
+from collections.abc import Iterator, Mapping
+from typing import Any
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import Image, TensorBoardOutputFormat
+
+from sb3_hieros.agent.world_model import stack_states
+from sb3_hieros.buffers import SequenceReplayBuffer
+from sb3_hieros.policies import HierarchyState, HierosPolicy
+
+__all__ = [
+    "ImaginationCallback",
+    "SubgoalDecodeCallback",
+    "decode_subgoals",
+    "imagine_open_loop",
+    "recent_window",
+]
+
+#: Observation entries of at most this many dimensions are shown in the vector plots of ImaginationCallback.
+MAX_PLOTTED_DIMS = 16
+
+Observation = th.Tensor | dict[str, th.Tensor]
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Decoding and imagination (no RL bookkeeping)
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+@th.no_grad()
+def decode_subgoals(policy: HierosPolicy, state: HierarchyState) -> list[Observation]:
+    """Decode the subgoal in force from every level i >= 1 into the environment's observation space (thesis 4.3.2,
+    last paragraph).
+
+    Level i's subgoal (its action ``state.actions[i]``) goes through level i-1's autoencoder decoder into level i-1's
+    h space (eq. 4.1); together with the current stochastic state z of level i-1 the world-model decoder of level i-1
+    turns it into level i-1's observation. Above level 1 that observation is k stacked world states ``[h, z]`` of
+    level i-2; the last of them is decoded by level i-2's world model, and so on down to level 0, whose decoder gives
+    an environment observation. The decoded z of a lower level is used as it comes out of the decoder (a soft
+    vector, not snapped to one-hot).
+
+    :param policy: the HIEROS policy (``n_levels >= 2`` for a non-empty result)
+    :param state: the hierarchy state, e.g. ``model._hier`` during training
+    :return: per level i = 1 .. n_levels - 1 (list index i - 1), the decoded observation of every env:
+        (n, *obs_shape) (images as float pixels in [0, 255]) or a dict of such tensors for Dict spaces
+    """
+    if not isinstance(state, HierarchyState):
+        raise ValueError(f"state must be a HierarchyState, got {type(state).__name__}")
+    if len(state.actions) != policy.n_levels:
+        raise ValueError(f"state holds {len(state.actions)} levels, but the policy has n_levels={policy.n_levels}")
+    n, k = state.n_envs, policy.subgoal_interval
+    decoded: list[Observation] = []
+    for level in range(1, policy.n_levels):
+        below = policy.subactor(level - 1)
+        h = below.decode_subgoal(state.actions[level])  # (n, D_{i-1})
+        obs = below.decode_state_observation(h, state.latents[level - 1].stoch)
+        for j in range(level - 2, -1, -1):
+            lower = policy.subactor(j)
+            assert isinstance(obs, th.Tensor)  # higher levels observe flat vectors
+            last = obs.reshape(n, k, lower.latent_dim)[:, -1]  # (n, D_j + Z_j): the newest of the k states
+            obs = lower.decode_state_observation(last[:, : lower.h_dim], last[:, lower.h_dim :])
+        decoded.append(obs)
+    return decoded
+
+
+def recent_window(buffer: SequenceReplayBuffer, env: int, context: int, horizon: int) -> np.ndarray | None:
+    """Rows of the newest ``context + horizon`` consecutive steps of one env stream whose last ``horizon`` steps lie
+    in one episode (no episode start there; the context may cross an episode start, the world model resets there).
+
+    Reads the stream's bookkeeping only: no random numbers are drawn.
+
+    :param buffer: a sequence replay buffer (level 0's)
+    :param env: index of the env stream
+    :param context: steps to condition on (>= 1)
+    :param horizon: steps to imagine (>= 1)
+    :return: (context + horizon,) row indices in time order, or None when no such window is stored
+    """
+    if not 0 <= env < buffer.n_envs:
+        raise ValueError(f"env must lie in [0, {buffer.n_envs}), got {env}")
+    length = context + horizon
+    stored = int(buffer.stored_steps()[env])
+    if stored < length:
+        return None
+    order = (int(buffer._oldest_rows()[env]) + np.arange(stored)) % buffer.buffer_size  # (stored,) oldest first
+    starts = np.concatenate([[0], np.cumsum(buffer.is_first[order, env], dtype=np.int64)])
+    first = np.arange(stored - length + 1)  # candidate window starts
+    clean = starts[first + length] - starts[first + context] == 0  # no episode start in the imagined part
+    valid = np.flatnonzero(clean)
+    if valid.size == 0:
+        return None
+    begin = int(valid[-1])
+    return order[begin : begin + length]
+
+
+@th.no_grad()
+def imagine_open_loop(
+    policy: HierosPolicy,
+    observations: Observation,
+    prev_actions: th.Tensor,
+    is_first: th.Tensor,
+    context: int,
+) -> tuple[Observation, Observation]:
+    """Level 0's world model on a real chunk: posterior over the first ``context`` steps, then open-loop imagination
+    of the remaining steps with the recorded actions (thesis 4.4.3, Fig. 5.1). Modes instead of samples.
+
+    :param policy: the HIEROS policy
+    :param observations: (B, T, *obs_shape) (a dict of them for Dict spaces), as the model sees them (normalised
+        under VecNormalize)
+    :param prev_actions: (B, T, A) float action vectors, row t = a_{t-1} (the action that led to o_t)
+    :param is_first: (B, T) bool episode starts
+    :param context: number of observed steps C, 1 <= C < T
+    :return: reconstructions of the context (B, C, ...) and imagined observations (B, T - C, ...), images as float
+        pixels in [0, 255]
+    """
+    length = int(is_first.shape[1])
+    if not 1 <= context < length:
+        raise ValueError(f"context must lie in [1, {length}) for chunks of {length} steps, got {context}")
+    wm = policy.subactor(0).world_model
+    if isinstance(observations, Mapping):
+        seen: Observation = {key: value[:, :context] for key, value in observations.items()}
+    else:
+        seen = observations[:, :context]
+    post, _ = wm.observe(seen, prev_actions[:, :context], is_first[:, :context], deterministic=True)
+    state = post.select((slice(None), context - 1))  # (B,)
+    imagined = []
+    for t in range(context, length):
+        state, _ = wm.img_step(state, prev_actions[:, t], deterministic=True)  # consumes a_{t-1}, gives s_t
+        imagined.append(state)
+    return wm.decode(post), wm.decode(stack_states(imagined, 1))
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Isolation from training
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def _isolated(policy: th.nn.Module) -> Iterator[None]:
+    """No gradients, evaluation mode, and the global random states of torch, numpy and ``random`` restored."""
+    py_state = random.getstate()
+    np_state = np.random.get_state()  # noqa: NPY002 (the replay samplers draw from numpy's global state)
+    torch_state = th.get_rng_state()
+    cuda_states = th.cuda.get_rng_state_all() if th.cuda.is_available() and th.cuda.is_initialized() else None
+    modes = [(module, module.training) for module in policy.modules()]
+    try:
+        policy.train(False)
+        with th.no_grad():
+            yield
+    finally:
+        for module, mode in modes:
+            module.training = mode
+        random.setstate(py_state)
+        np.random.set_state(np_state)  # noqa: NPY002
+        th.set_rng_state(torch_state)
+        if cuda_states is not None:
+            th.cuda.set_rng_state_all(cuda_states)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Rendering helpers
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def _require_matplotlib() -> None:
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError as error:  # pragma: no cover - depends on the installation
+        raise ImportError(
+            "the sb3_hieros callbacks draw with matplotlib: pip install 'sb3-hieros[extra]' or pip install matplotlib"
+        ) from error
+
+
+def _new_figure(width: float, height: float) -> Any:
+    """A matplotlib Figure with an Agg canvas (no pyplot, no global backend change)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(width, height), dpi=100)
+    FigureCanvasAgg(figure)
+    return figure
+
+
+def _render(figure: Any) -> np.ndarray:
+    """The figure as an (H, W, 3) uint8 RGB array."""
+    figure.canvas.draw()
+    return np.asarray(figure.canvas.buffer_rgba())[..., :3].copy()
+
+
+def _display_image(image: np.ndarray) -> np.ndarray:
+    """A channel-first image (C, H, W) in [0, 255] as (H, W, 3) uint8: grey for one channel, RGB for three; for
+    stacked frames (C a multiple of 3: the last 3 channels, otherwise the last channel)."""
+    pixels = np.clip(np.asarray(image, dtype=np.float32), 0.0, 255.0).round().astype(np.uint8)
+    channels = pixels.shape[0]
+    if channels == 3:
+        chosen = pixels
+    elif channels % 3 == 0:
+        chosen = pixels[-3:]
+    else:
+        chosen = np.repeat(pixels[-1:], 3, 0)
+    return np.ascontiguousarray(chosen.transpose(1, 2, 0))
+
+
+def _as_numpy_dict(obs: Any, keys: list[str], is_dict: bool) -> dict[str, np.ndarray]:
+    """Observation(s) as a key -> float numpy dict (tensors moved to the CPU)."""
+    items = obs if is_dict else {keys[0]: obs}
+    out = {}
+    for key in keys:
+        value = items[key]
+        array = value.detach().float().cpu().numpy() if isinstance(value, th.Tensor) else np.asarray(value)
+        out[key] = array.astype(np.float32)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Callbacks
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+class _PeriodicDrawingCallback(BaseCallback):
+    """Shared part: argument checks, the ``every`` schedule, isolation, PNG and TensorBoard output.
+
+    :param every: draw when the number of environment steps reaches a multiple of ``every`` (at most once per
+        vec-env step)
+    :param save_dir: directory for the PNGs (created), or None
+    :param tensorboard: also write the images to the logger's TensorBoard output (if it has one)
+    :param verbose: 0 silent, 1 prints the written files
+    """
+
+    def __init__(self, every: int, save_dir: str | os.PathLike | None, tensorboard: bool, verbose: int) -> None:
+        super().__init__(verbose)
+        if isinstance(every, bool) or not isinstance(every, int | np.integer) or every < 1:
+            raise ValueError(f"every must be a positive int (environment steps), got {every!r}")
+        if save_dir is not None and not isinstance(save_dir, str | os.PathLike):
+            raise ValueError(f"save_dir must be a path or None, got {type(save_dir).__name__}")
+        if not isinstance(tensorboard, bool):
+            raise ValueError(f"tensorboard must be a bool, got {tensorboard!r}")
+        if save_dir is None and not tensorboard:
+            raise ValueError("save_dir is None and tensorboard is False: the callback would write nothing")
+        _require_matplotlib()
+        self.every = int(every)
+        self.save_dir = None if save_dir is None else pathlib.Path(save_dir)
+        self.tensorboard = tensorboard
+        #: PNG files written so far, in order
+        self.saved_files: list[pathlib.Path] = []
+        self._next_draw = self.every
+        self._disabled = False
+
+    def _init_callback(self) -> None:
+        from sb3_hieros.hieros import HIEROS
+
+        if not isinstance(self.model, HIEROS):
+            raise ValueError(f"{type(self).__name__} works with HIEROS models, got {type(self.model).__name__}")
+        self._next_draw = (self.num_timesteps // self.every + 1) * self.every
+        if self.save_dir is not None:
+            self.save_dir.mkdir(parents=True, exist_ok=True)
+
+    def _on_step(self) -> bool:
+        if self._disabled or self.num_timesteps < self._next_draw:
+            return True
+        self._next_draw = (self.num_timesteps // self.every + 1) * self.every
+        with _isolated(self.model.policy):
+            self._draw()
+        return True
+
+    def _draw(self) -> None:
+        raise NotImplementedError
+
+    def _write_image(self, tag: str, image: np.ndarray, filename: str) -> None:
+        """PNG under ``save_dir`` and an SB3 ``Image`` on every TensorBoard output of the logger, at this step."""
+        if self.save_dir is not None:
+            from matplotlib.image import imsave
+
+            path = self.save_dir / filename
+            imsave(path, image)
+            self.saved_files.append(path)
+            if self.verbose >= 1:
+                print(f"{type(self).__name__}: wrote {path}")
+        if self.tensorboard:
+            for output in self.logger.output_formats:
+                if isinstance(output, TensorBoardOutputFormat):
+                    output.write({tag: Image(image, "HWC")}, {tag: None}, self.num_timesteps)
+
+
+class SubgoalDecodeCallback(_PeriodicDrawingCallback):
+    """Every ``every`` environment steps, decode the current subgoal of every level above 0 into the environment's
+    observation space (:func:`decode_subgoals`, thesis 4.3.2) and show it next to the real observation.
+
+    One picture per shown env: images as a grid with one column per level (observation | level-1 subgoal |
+    level-2 subgoal ...) and one row per image key; vector observations as a plot of the decoded vectors against
+    the real one (all entries of the flattened vector). The real observation is the one the hierarchy has just
+    encoded (``model._last_obs``, normalised under VecNormalize like the decoded ones). PNGs are named
+    ``subgoals_<step>_env<j>.png``, TensorBoard tags ``subgoals/env<j>``. A one-level model has no subgoals: the
+    callback warns once and does nothing.
+
+    :param every: environment steps between two pictures
+    :param n_envs_shown: how many envs (the first ones) to show; at most the model's ``n_envs``
+    :param save_dir: directory for the PNGs, or None
+    :param tensorboard: also write to the logger's TensorBoard output
+    :param verbose: 0 silent, 1 prints the written files
+    """
+
+    def __init__(
+        self,
+        every: int,
+        n_envs_shown: int = 1,
+        save_dir: str | os.PathLike | None = None,
+        tensorboard: bool = True,
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(every, save_dir, tensorboard, verbose)
+        if isinstance(n_envs_shown, bool) or not isinstance(n_envs_shown, int | np.integer) or n_envs_shown < 1:
+            raise ValueError(f"n_envs_shown must be a positive int, got {n_envs_shown!r}")
+        self.n_envs_shown = int(n_envs_shown)
+        self._warned = False
+
+    def _init_callback(self) -> None:
+        super()._init_callback()
+        if self.n_envs_shown > self.model.n_envs:
+            raise ValueError(f"n_envs_shown={self.n_envs_shown} exceeds the model's n_envs={self.model.n_envs}")
+        self._disabled = self.model.policy.n_levels < 2
+        if self._disabled and not self._warned:
+            warnings.warn(
+                "SubgoalDecodeCallback: the model has n_levels=1, so there are no subgoals to decode; the callback "
+                "does nothing",
+                UserWarning,
+                stacklevel=2,
+            )
+            self._warned = True
+
+    def _draw(self) -> None:
+        model = self.model
+        state: HierarchyState | None = model._hier
+        if state is None or model._last_obs is None:
+            return
+        policy: HierosPolicy = model.policy
+        spec = policy.subactor(0).world_model.spec
+        keys = list(spec.shapes)
+        decoded = [_as_numpy_dict(obs, keys, spec.is_dict) for obs in decode_subgoals(policy, state)]
+        real = _as_numpy_dict(model._last_obs, keys, spec.is_dict)
+        for env in range(self.n_envs_shown):
+            image = self._picture(
+                env, spec.image_keys, spec.vector_keys, real, decoded, f"step {self.num_timesteps}, env {env}"
+            )
+            self._write_image(f"subgoals/env{env}", image, f"subgoals_{self.num_timesteps:09d}_env{env}.png")
+
+    @staticmethod
+    def _picture(
+        env: int,
+        image_keys: list[str],
+        vector_keys: list[str],
+        real: dict[str, np.ndarray],
+        decoded: list[dict[str, np.ndarray]],
+        title: str,
+    ) -> np.ndarray:
+        """One env's picture: a row of images per image key, a plot per vector key."""
+        columns = 1 + len(decoded)
+        rows = len(image_keys) + len(vector_keys)
+        figure = _new_figure(max(2.2 * columns, 4.5), 2.4 * rows + 0.4)
+        grid = figure.add_gridspec(rows, columns)
+        labels = ["observation"] + [f"level-{i} subgoal" for i in range(1, columns)]
+        for row, key in enumerate(image_keys):
+            panels = [real[key][env]] + [d[key][env] for d in decoded]
+            for col, (panel, label) in enumerate(zip(panels, labels, strict=True)):
+                ax = figure.add_subplot(grid[row, col])
+                ax.imshow(_display_image(panel), interpolation="nearest")
+                ax.set_xticks([])
+                ax.set_yticks([])
+                ax.set_title(label if len(image_keys) == 1 else f"{label}\n[{key}]", fontsize=9)
+        for offset, key in enumerate(vector_keys):
+            ax = figure.add_subplot(grid[len(image_keys) + offset, :])
+            x = np.arange(real[key][env].size)
+            ax.plot(x, real[key][env].reshape(-1), "o-", color="black", label="observation", linewidth=2)
+            for i, d in enumerate(decoded, start=1):
+                ax.plot(x, d[key][env].reshape(-1), "s--", label=f"level-{i} subgoal (decoded)", alpha=0.8)
+            ax.set_xlabel("observation entry" if key == "obs" else f"entry of {key!r}")
+            ax.set_ylabel("value")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=8, loc="best")
+        figure.suptitle(f"decoded subgoals, {title}", fontsize=10)
+        figure.tight_layout()
+        return _render(figure)
+
+
+class ImaginationCallback(_PeriodicDrawingCallback):
+    """Every ``every`` environment steps, show level 0's world model against reality (thesis Fig. 5.1).
+
+    From the newest ``context + horizon`` steps of env 0 in level 0's replay whose last ``horizon`` steps lie in one
+    episode (:func:`recent_window`), the world model observes the first ``context`` steps and imagines the next
+    ``horizon`` open-loop with the recorded actions (:func:`imagine_open_loop`). The picture shows, per image key,
+    the real frames above the model's (reconstructions of the context, then the imagination; a red line marks the
+    start of imagination), per vector key the real and predicted trajectories of the first
+    :data:`MAX_PLOTTED_DIMS` entries, and the per-step prediction error of the imagined steps: the mean squared
+    error over pixels scaled to [0, 1] (images) or over the entries in observation units (vectors). PNGs are
+    named ``imagination_<step>.png``, the TensorBoard tag is ``imagination/env0``; the errors are logged as
+    ``imagination/<key>error_mean``, ``..._first`` and ``..._last`` (``<key>`` empty for non-Dict spaces) and
+    appended to ``save_dir/imagination_errors.csv`` (step, key, then one column per imagined step). Nothing is
+    drawn while the replay holds no such window.
+
+    :param every: environment steps between two pictures
+    :param horizon: imagined steps (>= 1)
+    :param context: observed steps before imagining (>= 1)
+    :param save_dir: directory for the PNGs and the CSV, or None
+    :param tensorboard: also write to the logger's TensorBoard output
+    :param verbose: 0 silent, 1 prints the written files
+    """
+
+    def __init__(
+        self,
+        every: int,
+        horizon: int = 15,
+        context: int = 5,
+        save_dir: str | os.PathLike | None = None,
+        tensorboard: bool = True,
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(every, save_dir, tensorboard, verbose)
+        for name, value in (("horizon", horizon), ("context", context)):
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+                raise ValueError(f"{name} must be a positive int, got {value!r}")
+        self.horizon = int(horizon)
+        self.context = int(context)
+        #: per-step errors of the last drawing: key -> (horizon,) array
+        self.last_errors: dict[str, np.ndarray] = {}
+
+    def _draw(self) -> None:
+        model = self.model
+        buffer: SequenceReplayBuffer = model.replay_buffer
+        rows = recent_window(buffer, 0, self.context, self.horizon)
+        if rows is None:
+            return
+        policy: HierosPolicy = model.policy
+        sub = policy.subactor(0)
+        spec = sub.world_model.spec
+        keys = list(spec.shapes)
+        arrays = buffer._obs_arrays()
+        raw = {key: arrays[key if spec.is_dict else ""][rows, 0][None] for key in keys}  # (1, T, *shape)
+        seen = buffer._normalize_obs(raw if spec.is_dict else raw[keys[0]], model._vec_normalize_env)
+        device = policy.device
+        obs: Observation
+        if isinstance(seen, dict):
+            obs = {key: th.as_tensor(value, device=device) for key, value in seen.items()}
+        else:
+            obs = th.as_tensor(seen, device=device)
+        first = buffer.is_first[rows, 0]  # (T,)
+        stored_actions = buffer.actions[rows, 0].copy()  # (T, action_dim), row t = a_{t-1}
+        stored_actions[first] = 0  # episode starts hold placeholders (as SequenceReplayBuffer.sample does)
+        is_first = th.as_tensor(first[None], device=device)
+        actions = sub.action_vectors(th.as_tensor(stored_actions[None], device=device), is_first)  # (1, T, A)
+        recon, imagined = imagine_open_loop(policy, obs, actions, is_first, self.context)
+        recon_np = _as_numpy_dict(recon, keys, spec.is_dict)
+        imagined_np = _as_numpy_dict(imagined, keys, spec.is_dict)
+        predicted = {key: np.concatenate([recon_np[key], imagined_np[key]], 1)[0] for key in keys}  # (T, *shape)
+        real = {key: value[0] for key, value in _as_numpy_dict(seen, keys, spec.is_dict).items()}  # (T, *shape)
+        self.last_errors = {}
+        for key in keys:
+            diff = predicted[key][self.context :] - real[key][self.context :]
+            if key in spec.image_keys:
+                diff = diff / 255.0
+            self.last_errors[key] = np.square(diff.reshape(self.horizon, -1)).mean(1)
+        self._log_errors(spec.is_dict)
+        image = self._picture(spec.image_keys, spec.vector_keys, real, predicted)
+        self._write_image("imagination/env0", image, f"imagination_{self.num_timesteps:09d}.png")
+
+    def _log_errors(self, is_dict: bool) -> None:
+        for key, errors in self.last_errors.items():
+            prefix = f"imagination/{key}_" if is_dict else "imagination/"
+            self.logger.record(f"{prefix}error_mean", float(errors.mean()))
+            self.logger.record(f"{prefix}error_first", float(errors[0]))
+            self.logger.record(f"{prefix}error_last", float(errors[-1]))
+        if self.save_dir is not None:
+            path = self.save_dir / "imagination_errors.csv"
+            new = not path.exists()
+            with path.open("a") as handle:
+                if new:
+                    steps = ",".join(f"error_t{t}" for t in range(1, self.horizon + 1))
+                    handle.write(f"num_timesteps,key,{steps}\n")
+                for key, errors in self.last_errors.items():
+                    values = ",".join(f"{e:.6g}" for e in errors)
+                    handle.write(f"{self.num_timesteps},{key},{values}\n")
+
+    def _picture(
+        self,
+        image_keys: list[str],
+        vector_keys: list[str],
+        real: dict[str, np.ndarray],
+        predicted: dict[str, np.ndarray],
+    ) -> np.ndarray:
+        """Strips of real and predicted frames per image key, trajectories per vector key, and the error curve."""
+        context, length = self.context, self.context + self.horizon
+        vector_panels = [(key, d) for key in vector_keys for d in range(min(real[key][0].size, MAX_PLOTTED_DIMS))]
+        vector_rows = (len(vector_panels) + 3) // 4
+        width = float(np.clip(0.6 * length, 9.0, 16.0))
+        heights = []
+        for key in image_keys:
+            _, height, frame_width = real[key].shape[-3:]
+            strip_aspect = length * (frame_width + 1) / height
+            heights += [max(width * 0.9 / strip_aspect, 0.6)] * 2  # real and model strip
+        heights += [2.0] * vector_rows + [2.2]
+        figure = _new_figure(width, sum(heights) + 0.8)
+        grid = figure.add_gridspec(len(heights), 4, height_ratios=heights)
+        row = 0
+        for key in image_keys:
+            for source, label in ((real, "real"), (predicted, "model")):
+                frames = [_display_image(frame) for frame in source[key]]
+                height, width = frames[0].shape[:2]
+                gap = np.full((height, 1, 3), 255, np.uint8)
+                strip = np.concatenate([part for frame in frames for part in (frame, gap)][:-1], 1)
+                ax = figure.add_subplot(grid[row, :])
+                ax.imshow(strip, interpolation="nearest", aspect="equal")
+                ax.axvline(context * (width + 1) - 1, color="red", linewidth=2)
+                ax.set_xticks([])
+                ax.set_yticks([])
+                ax.set_ylabel(label if len(image_keys) == 1 else f"{label}\n[{key}]", fontsize=9)
+                row += 1
+        t = np.arange(length)
+        for index, (key, d) in enumerate(vector_panels):
+            ax = figure.add_subplot(grid[row + index // 4, index % 4])
+            ax.plot(t, real[key].reshape(length, -1)[:, d], "o-", color="black", markersize=3, label="real")
+            ax.plot(t, predicted[key].reshape(length, -1)[:, d], "s--", markersize=3, label="model")
+            ax.axvline(context - 0.5, color="red", linewidth=1)
+            ax.set_title(f"entry {d}" if key == "obs" else f"{key}[{d}]", fontsize=9)
+            ax.tick_params(labelsize=7)
+            if index == 0:
+                ax.legend(fontsize=7)
+        row += vector_rows
+        ax = figure.add_subplot(grid[row, :])
+        steps = np.arange(1, self.horizon + 1)
+        for key, errors in self.last_errors.items():
+            ax.plot(steps, errors, "o-", label=key if len(self.last_errors) > 1 else None)
+        ax.set_xlabel("imagined step")
+        ax.set_ylabel("mean squared error")
+        ax.grid(alpha=0.3)
+        if len(self.last_errors) > 1:
+            ax.legend(fontsize=8)
+        figure.suptitle(
+            f"world model vs reality, step {self.num_timesteps}: {context} observed steps, then {self.horizon} "
+            "imagined open-loop (right of the red line)",
+            fontsize=10,
+        )
+        figure.tight_layout()
+        return _render(figure)
