@@ -206,7 +206,8 @@ def main(argv: list[str] | None = None) -> dict:
         for future in futures:
             run = future.result()
             runs.append(run)
-            print(f"{run['algo']} seed {run['seed']}: {dict(zip(run['steps'], run['returns']))} ({run['wall_s']} s)")
+            evals = dict(zip(run["steps"], run["returns"], strict=True))
+            print(f"{run['algo']} seed {run['seed']}: {evals} ({run['wall_s']} s)")
     table = summarise(runs, milestones)
     header = "| algorithm | " + " | ".join(f"{m // 1000}k steps" for m in milestones) + " | wall s / run |"
     print(header)
