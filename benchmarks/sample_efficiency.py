@@ -199,7 +199,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     print(environment_header())
     args.out.mkdir(parents=True, exist_ok=True)
-    jobs = [(a, s) for s in args.seeds for a in args.algos]
+    jobs = [(a, s) for a in args.algos for s in args.seeds]  # the slowest runs (HIEROS) first
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
         futures = [pool.submit(run_one, a, s, milestones, args.eval_episodes, hieros_kwargs) for a, s in jobs]
         runs = []
