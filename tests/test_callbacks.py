@@ -24,14 +24,6 @@ pytest.importorskip("matplotlib")
 from matplotlib.image import imread
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(threads)
-
-
 class MovingSquareEnv(gym.Env):
     """16x16 RGB frames (channel-last uint8) of a red square that the actions move left, not at all, or right."""
 

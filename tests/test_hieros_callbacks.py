@@ -21,14 +21,6 @@ from stable_baselines3.common.env_util import make_vec_env
 from sb3_hieros import HIEROS
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(threads)
-
-
 class RecordingCallback(BaseCallback):
     def __init__(self) -> None:
         super().__init__()

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch as th
 from gymnasium.wrappers import TimeLimit
 from hieros_helpers import CountingEnv, tiny_kwargs
 from stable_baselines3.common.vec_env import DummyVecEnv
@@ -14,14 +13,6 @@ from sb3_hieros import HIEROS
 
 K = 2
 NO_TRAINING = 10**9  # learning_starts: random actions, no updates, the hierarchy still encodes every step
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(threads)
 
 
 def stream(buffer, env: int) -> dict[str, np.ndarray]:

@@ -24,14 +24,6 @@ from sb3_hieros import HIEROS
 from sb3_hieros.buffers import ETBSReplayBuffer, SequenceReplayBuffer
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(threads)
-
-
 class NanEnv(gym.Env):
     """5-step episodes of float observations; the observation of step ``nan_at`` of episode ``episode`` is NaN (and
     the reward of step ``reward_nan_at`` of every episode).

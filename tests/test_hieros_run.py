@@ -19,14 +19,6 @@ from stable_baselines3.common.vec_env import VecNormalize
 from sb3_hieros import HIEROS, CnnPolicy, HierosPolicy, MlpPolicy, MultiInputPolicy
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(threads)
-
-
 class TupleObsEnv(gym.Env):
     observation_space = spaces.Tuple((spaces.Box(-1, 1, (2,)), spaces.Box(-1, 1, (3,))))
     action_space = spaces.Discrete(2)

@@ -15,14 +15,6 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 from sb3_hieros import HIEROS, CnnPolicy, MlpPolicy
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(threads)
-
-
 def _assert_same_params(a: dict, b: dict) -> None:
     assert a.keys() == b.keys()
     for name in a:

@@ -22,14 +22,6 @@ VECTOR = spaces.Box(-5.0, 5.0, (5,), np.float32)
 IMAGE = spaces.Box(0, 255, (3, 16, 16), np.uint8)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(threads)
-
-
 def tiny_config(**changes):
     sections = {
         "world_model": dict(TINY_WM),
