@@ -17,6 +17,7 @@ warm-up segment each first. The thesis reports S5WM 1.59x as fast as RSSM on a G
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -219,6 +220,12 @@ def run_agent(args: argparse.Namespace) -> None:
             f"need --segment >= 1, --rounds >= 1, --warmup >= 0, got {args.segment}, {args.rounds}, {args.warmup}"
         )
     print(environment_header())
+    load, cpus = os.getloadavg()[0], os.cpu_count() or 1
+    if torch.get_num_threads() > 1 and load + torch.get_num_threads() > cpus:
+        print(
+            f"warning: {torch.get_num_threads()} threads on {cpus} CPUs with load {load:.1f}: intra-op threads then "
+            "wait on each other and single-sample acting slows down many-fold; --threads 1 is faster on a busy machine"
+        )
     builds = {"S5WM": "s5", "RSSM": "rssm"}
     models: dict[str, Any] = {}
     for name, kind in builds.items():
@@ -292,7 +299,12 @@ def build_parser() -> argparse.ArgumentParser:
     s5.set_defaults(func=run_s5)
 
     agent = sub.add_parser("agent", help="HIEROS training env steps/s on Pong 64x64, S5WM vs RSSM, small preset")
-    agent.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
+    agent.add_argument(
+        "--threads",
+        type=int,
+        default=2,
+        help="torch intra-op threads (default 2; use 1 when other jobs share the CPUs)",
+    )
     agent.add_argument(
         "--learning-starts", type=int, default=None, help="untimed random steps first (default: the preset's)"
     )
