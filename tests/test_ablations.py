@@ -136,6 +136,16 @@ def test_shared_world_model_trains_all_levels_in_level_zero_imagination(monkeypa
     assert "reward/subgoal" in level1 and "reward/subgoal" not in level2  # top level: no subgoal
 
 
+def test_shared_world_model_trains_box_actions_by_dynamics_backpropagation():
+    model = model_with("Pendulum-v1", hierarchical_world_models=False)
+    assert model.policy.subactor(0).imag_gradient == "dynamics"
+    actor = model.policy.subactor(0).actor_critic.actor
+    before = [p.detach().clone() for p in actor.parameters()]
+    model.learn(30)
+    assert model._level_updates == [model._level_updates[0]] * 2 and model._level_updates[0] > 0
+    assert any(not th.equal(a, b) for a, b in zip(before, actor.parameters(), strict=True))
+
+
 def test_start_windows_hold_the_last_states_of_the_same_episode():
     feats = th.arange(1, 7, dtype=th.float32).reshape(1, 6, 1)  # states 1..6
     is_first = th.tensor([[False, False, True, False, False, False]])
