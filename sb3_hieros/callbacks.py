@@ -70,9 +70,10 @@ def decode_subgoals(policy: HierosPolicy, state: HierarchyState) -> list[Observa
     Level i's subgoal (its action ``state.actions[i]``) goes through level i-1's autoencoder decoder into level i-1's
     h space (eq. 4.1); together with the current stochastic state z of level i-1 the world-model decoder of level i-1
     turns it into level i-1's observation. Above level 1 that observation is k stacked world states ``[h, z]`` of
-    level i-2; the last of them is decoded by level i-2's world model, and so on down to level 0, whose decoder gives
-    an environment observation. The decoded z of a lower level is used as it comes out of the decoder (a soft
-    vector, not snapped to one-hot).
+    level i-2 (or only the newest, ablation 5.3.6); the last of them is decoded by level i-2's world model, and so on
+    down to level 0, whose decoder gives an environment observation. The decoded z of a lower level is used as it comes
+    out of the decoder (a soft vector, not snapped to one-hot). With one shared world model (ablation 5.3.1) every
+    level's subgoal is decoded into level 0's h space and turned into an observation by level 0's world model.
 
     :param policy: the HIEROS policy (``n_levels >= 2`` for a non-empty result)
     :param state: the hierarchy state, e.g. ``model._hier`` during training
@@ -83,8 +84,14 @@ def decode_subgoals(policy: HierosPolicy, state: HierarchyState) -> list[Observa
         raise ValueError(f"state must be a HierarchyState, got {type(state).__name__}")
     if len(state.actions) != policy.n_levels:
         raise ValueError(f"state holds {len(state.actions)} levels, but the policy has n_levels={policy.n_levels}")
-    n, k = state.n_envs, policy.subgoal_interval
+    n = state.n_envs
     decoded: list[Observation] = []
+    if not policy.hierarchical_world_models:  # ablation 5.3.1: every subgoal lives in level 0's h space
+        level0 = policy.subactor(0)
+        for level in range(1, policy.n_levels):
+            h = policy.subactor(level - 1).decode_subgoal(state.actions[level])  # (n, D_0)
+            decoded.append(level0.decode_state_observation(h, state.latents[0].stoch))
+        return decoded
     for level in range(1, policy.n_levels):
         below = policy.subactor(level - 1)
         h = below.decode_subgoal(state.actions[level])  # (n, D_{i-1})
@@ -92,7 +99,7 @@ def decode_subgoals(policy: HierosPolicy, state: HierarchyState) -> list[Observa
         for j in range(level - 2, -1, -1):
             lower = policy.subactor(j)
             assert isinstance(obs, th.Tensor)  # higher levels observe flat vectors
-            last = obs.reshape(n, k, lower.latent_dim)[:, -1]  # (n, D_j + Z_j): the newest of the k states
+            last = obs.reshape(n, -1, lower.latent_dim)[:, -1]  # (n, D_j + Z_j): the newest of the k states
             obs = lower.decode_state_observation(last[:, : lower.h_dim], last[:, lower.h_dim :])
         decoded.append(obs)
     return decoded

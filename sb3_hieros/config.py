@@ -16,6 +16,11 @@ from typing import Any
 WORLD_MODEL_KINDS = ("s5", "rssm")
 DETER_SOURCES = ("state", "output")
 IMAG_GRADIENTS = ("auto", "reinforce", "dynamics")
+HIGHER_LEVEL_INPUTS = ("all", "last")
+EXTRINSIC_REWARD_LEVELS = ("all", "top")
+ACTION_ALIGNMENTS = ("previous", "current")
+REINFORCE_ADVANTAGES = ("normalized", "raw")
+TERMINAL_REWARDS = ("kept", "zeroed")
 
 
 def _check_positive(obj: object, *names: str) -> None:
@@ -210,6 +215,46 @@ class SubgoalConfig:
 
 
 @dataclass
+class ReferenceCompatConfig:
+    """Switches that reproduce behaviours of the public reference code which this package corrects by default.
+
+    Research note ``hieros_reference.md`` sections 5 and 8 describe them; the defaults are the corrected behaviours.
+    Set all three with ``config_overrides={"reference": REFERENCE_BEHAVIOUR}`` (see :data:`REFERENCE_BEHAVIOUR`).
+
+    :param action_alignment: ``"previous"`` (default): the world model's sequence model at row t consumes
+        ``(z_{t-1}, a_{t-1})`` in training, acting and imagination alike. ``"current"``: in world-model training
+        row t consumes ``(z_{t-1}, a_t)``, the action chosen *after* seeing o_t (note 8.1: the reference's
+        ``observe`` pairs z_{t-1} with a_t while acting and imagination use a_{t-1}; a_t is zeroed where
+        ``is_first``). The last row of a chunk, whose a_t the chunk does not hold, gets a zero action.
+    :param reinforce_advantage: ``"normalized"`` (default): REINFORCE uses the weighted sum of the per-term
+        advantages, each divided by its return scale, as dynamics backpropagation does (DreamerV3). ``"raw"``:
+        REINFORCE uses the reward-weight-weighted *average* of the unnormalised advantages
+        ``sum_k w_k (R^k - v^k) / sum_k w_k`` (note 5.6 / 8.3); dynamics backpropagation is unchanged.
+    :param terminal_reward: ``"kept"`` (default): the reward of the step that ends an episode is stored. ``"zeroed"``:
+        it is stored as 0 at level 0, and the terminal rows of the higher levels store a reward of 0 (the reference
+        clears the pending reward sum before writing them, note 8.4). The reference's wiping of *every* env's pending
+        sums at any env's reset is not reproduced.
+    """
+
+    action_alignment: str = "previous"
+    reinforce_advantage: str = "normalized"
+    terminal_reward: str = "kept"
+
+    def __post_init__(self) -> None:
+        _check_choice(self, "action_alignment", ACTION_ALIGNMENTS)
+        _check_choice(self, "reinforce_advantage", REINFORCE_ADVANTAGES)
+        _check_choice(self, "terminal_reward", TERMINAL_REWARDS)
+
+
+#: ``config_overrides={"reference": REFERENCE_BEHAVIOUR}`` reproduces all three reference behaviours at once.
+REFERENCE_BEHAVIOUR: dict[str, str] = {
+    "action_alignment": "current",
+    "reinforce_advantage": "raw",
+    "terminal_reward": "zeroed",
+}
+
+
+@dataclass
 class HierosConfig:
     """Everything a HIEROS agent needs besides the environment.
 
@@ -226,6 +271,21 @@ class HierosConfig:
     :param learning_starts: environment steps of random actions before training starts
     :param etbs_temperature: tau of ETBS (thesis 4.5, eq. 4.21)
     :param replay: ``"etbs"`` (default), ``"uniform"``, ``"reference"`` or ``"count"`` (ablation 5.3.3)
+    :param hierarchical_world_models: True (default): every level has its own world model and imagines in it
+        (hierarchical imagination). False (ablation 5.3.1): only level 0 has a world model; level i >= 1 observes the
+        last ``k**i`` world states of level 0 and all levels are trained together in level 0's imagination, where
+        level i acts every ``k**i`` imagined steps (see :mod:`sb3_hieros.agent.shared`)
+    :param higher_level_input: ``"all"`` (default): level i+1 observes the last k world states of level i
+        concatenated; ``"last"`` (ablation 5.3.6): only the newest (k-th) of them
+    :param decoded_subgoal_input: the actor and critics of a level below the top see the subgoal decoded into their
+        own h space instead of the one-hot code (ablation 5.3.8; ``policy_kwargs={"decoded_subgoal_input": True}``
+        is an alias)
+    :param update_subgoals_in_imagination: False (default): a level's imagination holds the subgoal of each replay
+        row fixed over the horizon. True (ablation 5.3.9): every k imagined steps the level above observes the last
+        k imagined states (with its own world model) and proposes a new subgoal
+    :param extrinsic_reward_levels: ``"all"`` (default): every level's actor-critic gets the extrinsic reward term;
+        ``"top"`` (ablation 5.3.10): only the top level, the levels below learn from subgoal and novelty rewards
+    :param reference: behaviours of the public reference code (:class:`ReferenceCompatConfig`)
     """
 
     world_model: WorldModelConfig = field(default_factory=WorldModelConfig)
@@ -241,6 +301,12 @@ class HierosConfig:
     learning_starts: int = 1024
     etbs_temperature: float = 0.3
     replay: str = "etbs"
+    hierarchical_world_models: bool = True
+    higher_level_input: str = "all"
+    decoded_subgoal_input: bool = False
+    update_subgoals_in_imagination: bool = False
+    extrinsic_reward_levels: str = "all"
+    reference: ReferenceCompatConfig = field(default_factory=ReferenceCompatConfig)
 
     def __post_init__(self) -> None:
         _check_positive(
@@ -251,11 +317,65 @@ class HierosConfig:
             raise ValueError(f"HierosConfig.learning_starts must be >= 0, got {self.learning_starts!r}")
         _check_fraction(self, "etbs_temperature")
         _check_choice(self, "replay", ("etbs", "uniform", "reference", "count"))
+        _check_choice(self, "higher_level_input", HIGHER_LEVEL_INPUTS)
+        _check_choice(self, "extrinsic_reward_levels", EXTRINSIC_REWARD_LEVELS)
+        for name in ("hierarchical_world_models", "decoded_subgoal_input", "update_subgoals_in_imagination"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"HierosConfig.{name} must be a bool, got {getattr(self, name)!r}")
+        self._check_ablation_combinations()
+
+    def _check_ablation_combinations(self) -> None:
+        """Raise ``ValueError`` for ablation switches that cannot apply to this configuration (thesis 5.3)."""
+        defaults = {
+            "hierarchical_world_models": True,
+            "higher_level_input": "all",
+            "decoded_subgoal_input": False,
+            "update_subgoals_in_imagination": False,
+            "extrinsic_reward_levels": "all",
+        }
+        if self.n_levels == 1:
+            changed = [f"{name}={getattr(self, name)!r}" for name, v in defaults.items() if getattr(self, name) != v]
+            if changed:
+                raise ValueError(
+                    f"HierosConfig: {', '.join(changed)} needs a hierarchy, but n_levels=1: with a single level there "
+                    "is no higher level, no subgoal and no top-only reward; use n_levels >= 2 or leave these switches "
+                    "at their defaults"
+                )
+            return
+        k, horizon = self.subgoal_interval, self.imag_horizon
+        if not self.hierarchical_world_models:
+            if self.update_subgoals_in_imagination:
+                raise ValueError(
+                    "HierosConfig: update_subgoals_in_imagination=True is implied by hierarchical_world_models=False "
+                    "(all levels act in level 0's imagination, the higher ones every k**i steps); leave it False"
+                )
+            if horizon < k ** (self.n_levels - 1):
+                raise ValueError(
+                    f"HierosConfig: hierarchical_world_models=False trains level i in level 0's imagination with one "
+                    f"step every k**i imagined steps, so imag_horizon ({horizon}) must be >= k**(n_levels-1) = "
+                    f"{k ** (self.n_levels - 1)} (k={k}, n_levels={self.n_levels})"
+                )
+        if self.update_subgoals_in_imagination and horizon < k:
+            raise ValueError(
+                f"HierosConfig: update_subgoals_in_imagination=True re-plans the subgoal every k={k} imagined steps, "
+                f"but imag_horizon={horizon} < k would never do so"
+            )
+        ac = self.actor_critic
+        if self.extrinsic_reward_levels == "top" and ac.subgoal_weight <= 0 and ac.novelty_weight <= 0:
+            raise ValueError(
+                "HierosConfig: extrinsic_reward_levels='top' leaves the levels below the top only the subgoal and "
+                "novelty rewards, but actor_critic.subgoal_weight and novelty_weight are both 0"
+            )
+        if self.reference.reinforce_advantage == "raw" and ac.imag_gradient == "dynamics":
+            raise ValueError(
+                "HierosConfig: reference.reinforce_advantage='raw' changes the REINFORCE advantage, but "
+                "actor_critic.imag_gradient='dynamics' uses no REINFORCE at any level; use 'auto' or 'reinforce'"
+            )
 
     def replace(self, **changes: Any) -> HierosConfig:
         """A copy with top-level fields replaced; nested sections take a dict of their own fields.
 
-        :param changes: e.g. ``n_levels=2, world_model={"s5_layers": 4}``
+        :param changes: e.g. ``n_levels=2, world_model={"s5_layers": 4}, reference={"terminal_reward": "zeroed"}``
         :return: the new configuration (validated)
         """
         top = {f.name for f in dataclasses.fields(self)}

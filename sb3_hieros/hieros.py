@@ -55,6 +55,12 @@ update happens before ``learning_starts`` steps (uniformly random actions at eve
 hierarchy still encodes every observation) or while level 0's buffer cannot sample a chunk (e.g. right after
 ``load``).
 
+Ablations (thesis 5.3; the switches are fields of :class:`HierosConfig`, listed in ``docs/ablations.md``): with
+``hierarchical_world_models=False`` (5.3.1) only level 0 has a replay and every update trains all levels together in
+level 0's imagination (:func:`~sb3_hieros.agent.shared.train_shared_hierarchy`); the ``reference`` section reproduces
+the reference code's world-model action alignment (:func:`current_action_alignment`, applied to every level's
+batch), its REINFORCE advantage and its zeroed terminal rewards.
+
 Logging: SB3's ``rollout/*``, ``time/*``, ``train/learning_rate``, ``train/n_updates``, and
 ``train/level{i}/<metric>`` for every metric of :meth:`Subactor.train_step` (mean over the updates since the last
 dump) plus ``train/level{i}/n_updates`` and ``train/level{i}/skipped_updates``.
@@ -92,7 +98,13 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.save_util import json_to_data, open_path
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
-from sb3_hieros.buffers import ETBSReplayBuffer, SequenceReplayBuffer, warn_if_replay_exceeds_memory
+from sb3_hieros.agent.shared import train_shared_hierarchy
+from sb3_hieros.buffers import (
+    ETBSReplayBuffer,
+    SequenceReplayBuffer,
+    SequenceSamples,
+    warn_if_replay_exceeds_memory,
+)
 from sb3_hieros.config import HierosConfig, get_preset
 from sb3_hieros.policies import (
     CnnPolicy,
@@ -106,7 +118,7 @@ from sb3_hieros.policies import (
     check_observation_space,
 )
 
-__all__ = ["HIEROS"]
+__all__ = ["HIEROS", "current_action_alignment"]
 
 SelfHIEROS = TypeVar("SelfHIEROS", bound="HIEROS")
 
@@ -125,14 +137,41 @@ _CONFIG_KEYWORDS = (
 
 
 class _AddWithSubgoal:
-    """Stand-in for level 0's buffer in ``OffPolicyAlgorithm._store_transition``: ``add`` also passes the subgoal."""
+    """Stand-in for level 0's buffer in ``OffPolicyAlgorithm._store_transition``: ``add`` also passes the subgoal,
+    and with ``zero_terminal_reward`` stores the reward of a step that ends an episode as 0 (reference-compat switch
+    ``reference.terminal_reward="zeroed"``, research note 8.4)."""
 
-    def __init__(self, buffer: SequenceReplayBuffer, subgoal: np.ndarray) -> None:
+    def __init__(
+        self, buffer: SequenceReplayBuffer, subgoal: np.ndarray | None, zero_terminal_reward: bool = False
+    ) -> None:
         self.buffer = buffer
         self.subgoal = subgoal
+        self.zero_terminal_reward = zero_terminal_reward
 
-    def add(self, *args: Any, **kwargs: Any) -> None:
-        self.buffer.add(*args, subgoal=self.subgoal, **kwargs)
+    def add(self, obs: Any, next_obs: Any, action: Any, reward: Any, done: Any, *args: Any, **kwargs: Any) -> None:
+        if self.zero_terminal_reward:
+            reward = np.where(np.asarray(done, dtype=bool).reshape(-1), 0.0, np.asarray(reward).reshape(-1))
+        if self.subgoal is not None:
+            kwargs["subgoal"] = self.subgoal
+        self.buffer.add(obs, next_obs, action, reward, done, *args, **kwargs)
+
+
+def current_action_alignment(samples: SequenceSamples, action_vectors: th.Tensor) -> SequenceSamples:
+    """Samples whose row t carries a_t (the action chosen at o_t) instead of a_{t-1}: the reference code's world-model
+    training alignment (reference-compat switch ``reference.action_alignment="current"``, research note 8.1).
+
+    Row t gets row t+1's action; it is zero where row t is an episode start (as in the reference), where row t+1 is
+    one (the action after a final observation) and in the chunk's last row (its a_t is not in the chunk).
+
+    :param samples: a batch of chunks (B, T, ...)
+    :param action_vectors: (B, T, A) the batch's actions a_{t-1} as float vectors (``Subactor.action_vectors``)
+    :return: the samples with (B, T, A) float actions a_t
+    """
+    is_first = samples.is_first.bool()
+    shifted = th.cat([action_vectors[:, 1:], th.zeros_like(action_vectors[:, :1])], 1)
+    next_first = th.cat([is_first[:, 1:], th.zeros_like(is_first[:, :1])], 1)
+    keep = ~(is_first | next_first)
+    return samples._replace(actions=shifted * keep.unsqueeze(-1).to(shifted.dtype))
 
 
 def _check_hieros_save(path: str | pathlib.Path | io.BufferedIOBase, custom_objects: dict[str, Any] | None) -> None:
@@ -363,7 +402,8 @@ class HIEROS(OffPolicyAlgorithm):
             raise ValueError(
                 f"replay_buffer_class must be a subclass of sb3_hieros.buffers.SequenceReplayBuffer, got {buffer_class}"
             )
-        levels = [self.policy.subactor(i) for i in range(cfg.n_levels)]
+        # one replay per level with a world model (only level 0's with hierarchical_world_models=False, 5.3.1)
+        levels = [self.policy.subactor(i) for i in range(self._n_replays())]
         subgoal_shape = (levels[0].subgoal_dim,)
         etbs = {"temperature": cfg.etbs_temperature, "mode": cfg.replay}
         kwargs: dict[str, Any] = {
@@ -387,7 +427,7 @@ class HIEROS(OffPolicyAlgorithm):
             )
             for i, (obs_space, act_space) in enumerate(spaces_per_level)
         ]
-        warned = warn_if_replay_exceeds_memory(estimates, [f"level {i}" for i in range(cfg.n_levels)])
+        warned = warn_if_replay_exceeds_memory(estimates, [f"level {i}" for i in range(len(levels))])
         with warnings.catch_warnings():
             if warned:
                 warnings.filterwarnings("ignore", message="The replay buffer needs about")
@@ -424,9 +464,14 @@ class HIEROS(OffPolicyAlgorithm):
                 subgoal_shape=subgoal_shape if i < cfg.n_levels - 1 else None,
                 **etbs,
             )
-            for i in range(1, cfg.n_levels)
+            for i in range(1, len(levels))
         ]
         return buffer
+
+    def _n_replays(self) -> int:
+        """Levels with a replay of their own: all, or only level 0 with ``hierarchical_world_models=False``."""
+        assert self.config is not None
+        return self.config.n_levels if self.config.hierarchical_world_models else 1
 
     def level_buffers(self) -> list[SequenceReplayBuffer]:
         """The replay buffer of every level, level 0 (``self.replay_buffer``) first.
@@ -446,10 +491,11 @@ class HIEROS(OffPolicyAlgorithm):
         higher = getattr(self.replay_buffer, "higher_levels", None)
         if not isinstance(self.replay_buffer, SequenceReplayBuffer) or not isinstance(higher, list):
             raise ValueError(f"{path} does not hold a HIEROS replay (SequenceReplayBuffer with higher_levels)")
-        if len(higher) != self.config.n_levels - 1:
+        if len(higher) != self._n_replays() - 1:
             raise ValueError(
                 f"{path} holds the replay of {len(higher) + 1} levels, but this model has "
-                f"n_levels={self.config.n_levels}"
+                f"n_levels={self.config.n_levels} with {self._n_replays()} replays "
+                f"(hierarchical_world_models={self.config.hierarchical_world_models})"
             )
         for buffer in self.level_buffers():
             if buffer.n_envs != self.n_envs:
@@ -478,7 +524,7 @@ class HIEROS(OffPolicyAlgorithm):
         """Fresh training-time hierarchy state for ``n_envs`` envs; every env starts an episode at its next step."""
         assert self.config is not None
         self._hier = self.policy.initial_hierarchy_state(self.n_envs)
-        self._reward_sums = [np.zeros(self.n_envs, dtype=np.float64) for _ in range(self.config.n_levels)]
+        self._reward_sums = [np.zeros(self.n_envs, dtype=np.float64) for _ in range(self._n_replays())]
         self._subgoal0 = None
         self._last_episode_starts = np.ones(self.n_envs, dtype=bool)
 
@@ -525,10 +571,13 @@ class HIEROS(OffPolicyAlgorithm):
         is_terminal: np.ndarray,
         subgoal: th.Tensor | None,
     ) -> None:
-        """One row per env in ``envs`` of level ``level``'s buffer; resets those envs' reward sums."""
+        """One row per env in ``envs`` of level ``level``'s buffer; resets those envs' reward sums.
+
+        ``obs`` is the (m, w, D) history of lower world states the level observes (all or the newest, 5.3.6).
+        """
         assert self._reward_sums is not None
         buffer = self.level_buffers()[level]
-        obs_np = obs.reshape(len(envs), -1).cpu().numpy()
+        obs_np = self.policy.higher_level_observation(obs).cpu().numpy()
         action = self.policy.subgoal_indices(level, prev_action)
         reward = self._reward_sums[level][envs].astype(np.float32)
         goal = None if subgoal is None else subgoal.cpu().numpy()
@@ -587,7 +636,7 @@ class HIEROS(OffPolicyAlgorithm):
             )
             if encoded is not None and i + 1 < len(hier.latents):
                 level = policy.subactor(i)
-                obs_i = history.reshape(envs.size, -1)
+                obs_i = policy.higher_level_observation(history)
                 latent = level.observe_step(hier.latents[i].select(index), obs_i, hier.actions[i][index], not_first)
                 encoded = level.encoded_observation(latent)
 
@@ -617,17 +666,43 @@ class HIEROS(OffPolicyAlgorithm):
                     "terminal observation",
                     envs=[int(j)],
                 )
-        target: Any = replay_buffer if self._subgoal0 is None else _AddWithSubgoal(replay_buffer, self._subgoal0)  # type: ignore[arg-type]
+        target: Any = replay_buffer
+        if self._subgoal0 is not None or self._zero_terminal_reward():
+            target = _AddWithSubgoal(replay_buffer, self._subgoal0, self._zero_terminal_reward())  # type: ignore[arg-type]
         super()._store_transition(target, buffer_action, new_obs, reward, dones, infos)
         assert self._reward_sums is not None
         for sums in self._reward_sums[1:]:
             sums += np.asarray(reward, dtype=np.float64).reshape(-1)
         done = np.asarray(dones, dtype=bool).reshape(-1)
-        if done.any() and len(self._reward_sums) > 1:
+        if self._zero_terminal_reward():  # reference: the pending sums are cleared before the terminal rows
+            for sums in self._reward_sums[1:]:
+                sums[done] = 0.0
+        if done.any() and self._n_replays() > 1:
             self._write_terminal_rows(done, infos)
         self._last_episode_starts = done.copy()
 
+    def _zero_terminal_reward(self) -> bool:
+        """Reference-compat switch ``reference.terminal_reward="zeroed"`` (research note 8.4)."""
+        return self.config is not None and self.config.reference.terminal_reward == "zeroed"
+
     # ------------------------------------------------------------------------------------------------ training
+
+    def _prepare_samples(self, level: int, samples: SequenceSamples) -> SequenceSamples:
+        """A sampled batch as level ``level`` trains on it: unchanged, or with the reference code's action alignment
+        (``reference.action_alignment="current"``, :func:`current_action_alignment`)."""
+        assert self.config is not None
+        if self.config.reference.action_alignment == "previous":
+            return samples
+        vectors = self.policy.subactor(level).action_vectors(samples.actions, samples.is_first)
+        return current_action_alignment(samples, vectors)
+
+    def _record_level(self, level: int, metrics: dict[str, float]) -> None:
+        """Log one update of ``level`` and watch its non-finite steps."""
+        assert self._level_updates is not None
+        self._level_updates[level] += 1
+        for key, value in metrics.items():
+            self.logger.record_mean(f"train/level{level}/{key}", value)
+        self._count_nonfinite(level, metrics)
 
     def _set_world_model_lr(self, level: int, lr: float) -> None:
         """Schedule value times the warm-up factor of this level's update count on its world-model optimiser."""
@@ -665,16 +740,20 @@ class HIEROS(OffPolicyAlgorithm):
         k = cfg.subgoal_interval
         for _ in range(n_updates):
             count = self._level_updates[0]
+            if not cfg.hierarchical_world_models:  # ablation 5.3.1: all levels in level 0's imagination
+                self._set_world_model_lr(0, lr)
+                samples = self._prepare_samples(0, buffers[0].sample(batch_size, env=self._vec_normalize_env))
+                for i, metrics in enumerate(train_shared_hierarchy(self.policy.levels, samples, cfg)):
+                    self._record_level(i, metrics)
+                self._n_updates += 1
+                continue
             for i, buffer in enumerate(buffers):
                 if count % k**i != 0 or not buffer.can_sample():
                     continue
                 self._set_world_model_lr(i, lr)
                 samples = buffer.sample(batch_size, env=self._vec_normalize_env if i == 0 else None)
-                metrics = self.policy.subactor(i).train_step(samples)
-                self._level_updates[i] += 1
-                for key, value in metrics.items():
-                    self.logger.record_mean(f"train/level{i}/{key}", value)
-                self._count_nonfinite(i, metrics)
+                metrics = self.policy.subactor(i).train_step(self._prepare_samples(i, samples))
+                self._record_level(i, metrics)
             self._n_updates += 1
         self.policy.set_training_mode(False)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")

@@ -28,6 +28,12 @@ states, or the GRU state of the RSSM), ``level{i}/logits``, ``level{i}/prior_log
 vector: one-hot, grouped one-hot subgoal, or Box action in [-1, 1]) and, for i >= 1, ``level{i}/history``
 (n, k, D_{i-1}), the last k world states of level i-1.
 
+Ablations (thesis 5.3, ``docs/ablations.md``): with ``higher_level_input="last"`` (5.3.6) a level observes only the
+newest state of its history; with ``hierarchical_world_models=False`` (5.3.1) the levels i >= 1 are
+:class:`~sb3_hieros.agent.shared.SharedLevel` without world models, their history holds the last ``k**i`` world
+states of level 0 and the state tuple has no ``level{i}/stoch`` ... ``level{i}/prior_logits`` entries for them; with
+``update_subgoals_in_imagination=True`` (5.3.9) every level below the top gets an :class:`ImaginationSubgoals`.
+
 ``MlpPolicy``, ``CnnPolicy`` and ``MultiInputPolicy`` are the same class under the names SB3 and rl-zoo expect: the
 world model picks a CNN for every image key and a symlog MLP for the vector keys of any observation space.
 """
@@ -46,15 +52,24 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
+from sb3_hieros.agent.shared import SharedLevel
 from sb3_hieros.agent.subactor import Subactor
 from sb3_hieros.agent.world_model import LatentState
-from sb3_hieros.config import ActorCriticConfig, HierosConfig, SubgoalConfig, WorldModelConfig, get_preset
+from sb3_hieros.config import (
+    ActorCriticConfig,
+    HierosConfig,
+    ReferenceCompatConfig,
+    SubgoalConfig,
+    WorldModelConfig,
+    get_preset,
+)
 
 __all__ = [
     "CnnPolicy",
     "HierarchyState",
     "HierarchyStep",
     "HierosPolicy",
+    "ImaginationSubgoals",
     "MlpPolicy",
     "MultiInputPolicy",
     "check_action_space",
@@ -161,7 +176,12 @@ def config_from_dict(config: Mapping[str, Any] | HierosConfig | None) -> HierosC
         return config
     if not isinstance(config, Mapping):
         raise ValueError(f"config must be a HierosConfig, a dict of its fields or None, got {type(config).__name__}")
-    sections = {"world_model": WorldModelConfig, "actor_critic": ActorCriticConfig, "subgoal": SubgoalConfig}
+    sections = {
+        "world_model": WorldModelConfig,
+        "actor_critic": ActorCriticConfig,
+        "subgoal": SubgoalConfig,
+        "reference": ReferenceCompatConfig,
+    }
     names = {f.name for f in dataclasses.fields(HierosConfig)}
     unknown = set(config) - names
     if unknown:
@@ -177,9 +197,11 @@ class HierarchyState(NamedTuple):
     """Recurrent state of the whole hierarchy for n envs (torch tensors on the policy's device).
 
     :param step: (n,) int64 step counter (global clock, see the module docstring)
-    :param latents: per level, the world state (batch (n,))
+    :param latents: per level with a world model of its own, the world state (batch (n,)); only level 0's with
+        ``hierarchical_world_models=False`` (ablation 5.3.1)
     :param actions: per level, (n, A_i) float action in force (level 0: environment action vector)
-    :param histories: per level i >= 1 (at index i - 1), (n, k, D_{i-1}) last k world states of level i - 1
+    :param histories: per level i >= 1 (at index i - 1), (n, k, D_{i-1}) last k world states of level i - 1, or
+        (n, k**i, D_0) last k**i world states of level 0 with ``hierarchical_world_models=False``
     """
 
     step: th.Tensor
@@ -214,8 +236,78 @@ def _scatter_state(old: LatentState, index: th.Tensor | None, new: LatentState) 
     return new if index is None else LatentState(*(_scatter(o, index, x) for o, x in zip(old, new, strict=True)))
 
 
+def _take(x: th.Tensor, index: th.Tensor | None) -> th.Tensor:
+    """Rows ``index`` of ``x`` (all rows if ``index`` is None)."""
+    return x if index is None else x[index]
+
+
 def _rows(state: LatentState, index: th.Tensor | None) -> LatentState:
     return state if index is None else state.select(index)
+
+
+class ImaginationSubgoals:
+    """Subgoals re-planned during level i's imagination by the levels above (ablation 5.3.9).
+
+    Installed as ``Subactor.imagination_subgoal_fn`` of every level below the top when
+    ``update_subgoals_in_imagination=True``. Level i calls it every k imagined steps with the last k imagined world
+    states; level i+1 encodes them (``higher_level_observation``) with its own world model, carrying its latent
+    state from call to call within one rollout (the first call starts it like an episode start), and acts. A level
+    i+1 below the top needs a subgoal of its own: at the first call of a rollout, level i+2 proposes one from a window
+    that holds only level i+1's first state (episode-start semantics), recursively up to the top, and it is held for
+    the rest of the rollout (with the thesis' k=4 and horizon 16, level i+2 would act at most once in that time).
+
+    :param levels: all levels of the policy
+    :param level: the level i whose imagination asks for subgoals (``i < n_levels - 1``)
+    :param higher_level_input: ``"all"`` or ``"last"`` (ablation 5.3.6), as the policy observes
+    """
+
+    def __init__(self, levels: Sequence[Subactor], level: int, higher_level_input: str) -> None:
+        if not 0 <= level < len(levels) - 1:
+            raise ValueError(f"level must lie in [0, {len(levels) - 1}) (a level with a level above), got {level}")
+        self.levels = levels
+        self.level = level
+        self.last_only = higher_level_input == "last"
+
+    def _observation(self, window: th.Tensor) -> th.Tensor:
+        return window[:, -1] if self.last_only else window.reshape(window.shape[0], -1)
+
+    def _propose_fresh(self, level: int, encoded_below: th.Tensor) -> th.Tensor:
+        """Subgoal of ``level`` from a window holding only ``encoded_below`` (n, D) (its slots before are empty)."""
+        upper = self.levels[level]
+        n = encoded_below.shape[0]
+        k = upper.config.subgoal_interval
+        window = encoded_below.new_zeros(n, k, encoded_below.shape[-1])
+        window[:, -1] = encoded_below
+        first = th.ones(n, dtype=th.bool, device=encoded_below.device)
+        prev = encoded_below.new_zeros(n, upper.action_dim)
+        state = upper.observe_step(None, self._observation(window), prev, first)
+        goal = None
+        if level < len(self.levels) - 1:
+            goal = self._propose_fresh(level + 1, upper.encoded_observation(state))
+        return upper.act(state, goal)
+
+    @th.no_grad()
+    def __call__(self, window: th.Tensor, subgoal: th.Tensor, carry: Any) -> tuple[th.Tensor, Any]:
+        """Next subgoal for level i.
+
+        :param window: (N, k, D_i + Z_i) the last k imagined world states of level i, oldest first
+        :param subgoal: (N, S) the subgoal code in force (level i+1's previous action)
+        :param carry: None at the first call of a rollout, else what the previous call returned
+        :return: the new (N, S) subgoal code and the carry (level i+1's latent state, its own subgoal)
+        """
+        upper = self.levels[self.level + 1]
+        n = window.shape[0]
+        first = carry is None
+        state_before = None if first else carry[0]
+        is_first = th.full((n,), first, dtype=th.bool, device=window.device)
+        state = upper.observe_step(state_before, self._observation(window), subgoal, is_first)
+        if first:
+            own_goal = None
+            if self.level + 2 < len(self.levels):
+                own_goal = self._propose_fresh(self.level + 2, upper.encoded_observation(state))
+        else:
+            own_goal = carry[1]
+        return upper.act(state, own_goal), (state, own_goal)
 
 
 class HierosPolicy(BasePolicy):
@@ -261,17 +353,45 @@ class HierosPolicy(BasePolicy):
             squash_output=isinstance(action_space, spaces.Box),
         )
         self.config = config_from_dict(config)
-        self.decoded_subgoal_input = bool(decoded_subgoal_input)
+        if decoded_subgoal_input and self.config.n_levels == 1:
+            raise ValueError(
+                "decoded_subgoal_input=True needs a hierarchy (n_levels >= 2): with one level there is no subgoal"
+            )
+        #: ablation 5.3.8; the policy keyword is an alias of ``HierosConfig.decoded_subgoal_input``
+        self.decoded_subgoal_input = bool(decoded_subgoal_input) or self.config.decoded_subgoal_input
         self.bf16 = bool(bf16)
         self.compile = bool(compile)
         self.n_levels = self.config.n_levels
         self.subgoal_interval = self.config.subgoal_interval
-        levels: list[Subactor] = []
+        #: ablation 5.3.1 when False: one world model (level 0's) for all levels
+        self.hierarchical_world_models = self.config.hierarchical_world_models
+        #: ablation 5.3.6 when ``"last"``: a higher level observes only the newest of its window of lower states
+        self.higher_level_input = self.config.higher_level_input
+        levels: list[Subactor | SharedLevel] = []
         for i in range(self.n_levels):
             below = levels[-1] if levels else None
+            if below is not None and not self.hierarchical_world_models:
+                level0 = levels[0]
+                assert isinstance(level0, Subactor)
+                levels.append(
+                    SharedLevel(
+                        level0.latent_dim,
+                        level0.h_dim,
+                        level0.z_dim,
+                        self.history_length(i) if self.higher_level_input == "all" else 1,
+                        self.config,
+                        level=i,
+                        subgoal_input=i < self.n_levels - 1,
+                        decoded_subgoal_input=self.decoded_subgoal_input,
+                    )
+                )
+                continue
+            if below is not None:
+                assert isinstance(below, Subactor)
+                window = self.subgoal_interval if self.higher_level_input == "all" else 1
             levels.append(
                 Subactor(
-                    observation_space if below is None else below.higher_level_observation_space(self.subgoal_interval),
+                    observation_space if below is None else below.higher_level_observation_space(window),
                     action_space if below is None else below.subgoal_space(),
                     self.config,
                     level=i,
@@ -282,6 +402,9 @@ class HierosPolicy(BasePolicy):
                 )
             )
         self.levels = nn.ModuleList(levels)
+        if self.config.update_subgoals_in_imagination:  # ablation 5.3.9
+            for i in range(self.n_levels - 1):
+                self.subactor(i).imagination_subgoal_fn = ImaginationSubgoals(self.levels, i, self.higher_level_input)
         #: the level-0 world-model optimiser under SB3's conventional name (``load`` falls back on ``policy.optimizer``)
         self.optimizer = self.levels[0].wm_optimizer
 
@@ -306,16 +429,47 @@ class HierosPolicy(BasePolicy):
         names = ["optimizer"]
         for i in range(self.n_levels):
             attrs = ("actor_optimizer", "critic_optimizer", "ae_optimizer")
-            names += [f"levels.{i}.{a}" for a in (attrs if i == 0 else ("wm_optimizer", *attrs))]
+            own_world_model = i > 0 and self.has_world_model(i)
+            names += [f"levels.{i}.{a}" for a in (("wm_optimizer", *attrs) if own_world_model else attrs)]
         return names
 
     def subactor(self, level: int) -> Subactor:
-        """The :class:`Subactor` of ``level`` (0 = acts in the environment).
+        """The :class:`Subactor` of ``level`` (0 = acts in the environment); with ``hierarchical_world_models=False``
+        the levels i >= 1 are :class:`~sb3_hieros.agent.shared.SharedLevel` (no world model).
 
         :param level: index in ``[0, n_levels)``
         :return: the subactor
         """
         return self.levels[level]  # type: ignore[return-value]
+
+    def has_world_model(self, level: int) -> bool:
+        """Whether ``level`` has a world model of its own (all levels, or only level 0 for ablation 5.3.1).
+
+        :param level: index in ``[0, n_levels)``
+        :return: True for a :class:`Subactor`
+        """
+        return level == 0 or self.hierarchical_world_models
+
+    def history_length(self, level: int) -> int:
+        """Number of lower world states level ``level`` >= 1 keeps: k of level i-1 (hierarchical world models) or
+        ``k**level`` of level 0 (one shared world model, ablation 5.3.1).
+
+        :param level: index in ``[1, n_levels)``
+        :return: slots of ``HierarchyState.histories[level - 1]``
+        """
+        return self.subgoal_interval if self.hierarchical_world_models else self.subgoal_interval**level
+
+    def higher_level_observation(self, history: th.Tensor) -> th.Tensor:
+        """What a higher level observes of its history of lower world states (thesis 4.3; ablation 5.3.6).
+
+        :param history: (n, w, D) lower world states, oldest first
+        :return: (n, w * D) all of them concatenated (``higher_level_input="all"``) or (n, D), the newest (``"last"``)
+        """
+        if history.dim() != 3:
+            raise ValueError(f"history must have shape (n, w, D), got {tuple(history.shape)}")
+        if self.higher_level_input == "last":
+            return history[:, -1]
+        return history.reshape(history.shape[0], -1)
 
     # ------------------------------------------------------------------------------------------------ actions
 
@@ -382,12 +536,18 @@ class HierosPolicy(BasePolicy):
         if isinstance(n_envs, bool) or not isinstance(n_envs, int | np.integer) or n_envs < 1:
             raise ValueError(f"n_envs must be a positive int, got {n_envs!r}")
         n = int(n_envs)
-        k = self.subgoal_interval
         device = self.device
-        latents = tuple(level.initial_state(n) for level in self.levels)
+        own = [i for i in range(self.n_levels) if self.has_world_model(i)]
+        latents = tuple(self.subactor(i).initial_state(n) for i in own)
         actions = tuple(th.zeros(n, level.action_dim, device=device) for level in self.levels)
-        histories = tuple(th.zeros(n, k, level.latent_dim, device=device) for level in self.levels[:-1])
+        histories = tuple(
+            th.zeros(n, self.history_length(i), self._history_dim(i), device=device) for i in range(1, self.n_levels)
+        )
         return HierarchyState(th.zeros(n, dtype=th.long, device=device), latents, actions, histories)
+
+    def _history_dim(self, level: int) -> int:
+        """Size of one world state in the history of ``level`` >= 1 (level i-1's, or level 0's when shared)."""
+        return self.subactor(level - 1 if self.hierarchical_world_models else 0).latent_dim
 
     def state_names(self) -> list[str]:
         """Names of the arrays of the :meth:`predict` state tuple, in order.
@@ -396,16 +556,19 @@ class HierosPolicy(BasePolicy):
         """
         names = ["step"]
         for i in range(self.n_levels):
-            names += [f"level{i}/{f}" for f in _LATENT_FIELDS] + [f"level{i}/action"]
+            if self.has_world_model(i):
+                names += [f"level{i}/{f}" for f in _LATENT_FIELDS]
+            names.append(f"level{i}/action")
             if i >= 1:
                 names.append(f"level{i}/history")
         return names
 
-    @staticmethod
-    def _flatten(state: HierarchyState) -> list[th.Tensor]:
+    def _flatten(self, state: HierarchyState) -> list[th.Tensor]:
         out = [state.step]
-        for i, (latent, action) in enumerate(zip(state.latents, state.actions, strict=True)):
-            out += [*latent, action]
+        for i, action in enumerate(state.actions):
+            if self.has_world_model(i):
+                out += [*state.latents[i]]
+            out.append(action)
             if i >= 1:
                 out.append(state.histories[i - 1])
         return out
@@ -414,8 +577,9 @@ class HierosPolicy(BasePolicy):
         pos = 1
         latents, actions, histories = [], [], []
         for i in range(self.n_levels):
-            latents.append(LatentState(*tensors[pos : pos + len(_LATENT_FIELDS)]))
-            pos += len(_LATENT_FIELDS)
+            if self.has_world_model(i):
+                latents.append(LatentState(*tensors[pos : pos + len(_LATENT_FIELDS)]))
+                pos += len(_LATENT_FIELDS)
             actions.append(tensors[pos])
             pos += 1
             if i >= 1:
@@ -493,7 +657,8 @@ class HierosPolicy(BasePolicy):
         """
         n = state.n_envs
         is_first = is_first.to(device=self.device, dtype=th.bool).reshape(n)
-        k = self.subgoal_interval
+        if not self.hierarchical_world_models:
+            return self._shared_hierarchy_step(state, observation, is_first, deterministic, random_actions)
         masks = tuple(self._update_mask(state.step, is_first, i) for i in range(self.n_levels))
         latents = list(state.latents)
         actions = list(state.actions)
@@ -512,7 +677,7 @@ class HierosPolicy(BasePolicy):
             if not bool(masks[i].any()):
                 continue
             index = self._index(masks[i])
-            obs_i = history.reshape(n, k * below.latent_dim)
+            obs_i = self.higher_level_observation(history)
             new = self.subactor(i).observe_step(
                 _rows(latents[i], index),
                 obs_i if index is None else obs_i[index],
@@ -539,6 +704,48 @@ class HierosPolicy(BasePolicy):
             actions[i] = _scatter(actions[i], index, chosen.to(actions[i].dtype))
 
         new_state = HierarchyState(state.step + 1, tuple(latents), tuple(actions), tuple(histories))
+        return new_state, HierarchyStep(masks, prev_actions)
+
+    def _shared_hierarchy_step(
+        self,
+        state: HierarchyState,
+        observation: PyTorchObs,
+        is_first: th.Tensor,
+        deterministic: bool,
+        random_actions: Sequence[th.Tensor | None] | None,
+    ) -> tuple[HierarchyState, HierarchyStep]:
+        """:meth:`hierarchy_step` with one world model (ablation 5.3.1): level 0 encodes o_t, every level i >= 1
+        pushes level 0's world state into its window of the last ``k**i`` of them and acts every ``k**i`` steps."""
+        n = state.n_envs
+        masks = tuple(self._update_mask(state.step, is_first, i) for i in range(self.n_levels))
+        level0 = self.subactor(0)
+        latent = level0.observe_step(state.latents[0], observation, state.actions[0], is_first, deterministic)
+        newest = level0.encoded_observation(latent).unsqueeze(1)  # (n, 1, D + G*K)
+        keep = (~is_first).to(newest.dtype).reshape(n, 1, 1)
+        histories = tuple(th.cat([h[:, 1:] * keep, newest], 1) for h in state.histories)
+        wm = level0.world_model
+        reward, cont, entropy = wm.reward(latent), wm.cont(latent), wm.prior_entropy(latent)
+        prev_actions = tuple(state.actions)
+        actions = list(state.actions)
+        for i in reversed(range(self.n_levels)):
+            if not bool(masks[i].any()):
+                continue
+            index = self._index(masks[i])
+            chosen = random_actions[i] if random_actions is not None else None
+            if chosen is None:
+                goal = None if i == self.n_levels - 1 else _take(actions[i + 1], index)
+                if i == 0:
+                    chosen = level0.act(_rows(latent, index), goal, deterministic)
+                else:
+                    level = self.levels[i]
+                    assert isinstance(level, SharedLevel)
+                    window = _take(self.higher_level_observation(histories[i - 1]), index)
+                    extras = (_take(x, index) for x in (reward, cont, entropy))
+                    chosen = level.act(window, *extras, goal, deterministic)
+            elif index is not None:
+                chosen = chosen[index]
+            actions[i] = _scatter(actions[i], index, chosen.to(actions[i].dtype))
+        new_state = HierarchyState(state.step + 1, (latent,), tuple(actions), histories)
         return new_state, HierarchyStep(masks, prev_actions)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:

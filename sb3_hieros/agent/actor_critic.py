@@ -500,6 +500,9 @@ class ActorCritic(nn.Module):
     :param num_bins: critic two-hot bins
     :param norm: LayerNorm in the MLPs
     :param act: activation class
+    :param reinforce_advantage: ``"normalized"`` (default, the A_t above) or ``"raw"``: REINFORCE uses the reference
+        code's unnormalised weighted average ``sum_k alpha_k (R^k_t - v^k(s_t)) / sum_k alpha_k`` (research note 5.6,
+        8.3; reference-compat switch). Dynamics backpropagation always uses A_t.
     """
 
     def __init__(
@@ -526,8 +529,12 @@ class ActorCritic(nn.Module):
         num_bins: int = 255,
         norm: bool = True,
         act: type[nn.Module] = nn.SiLU,
+        reinforce_advantage: str = "normalized",
     ) -> None:
         super().__init__()
+        if reinforce_advantage not in ("normalized", "raw"):
+            raise ValueError(f"reinforce_advantage must be 'normalized' or 'raw', got {reinforce_advantage!r}")
+        self.reinforce_advantage = reinforce_advantage
         weights = dict(DEFAULT_REWARD_WEIGHTS if reward_weights is None else reward_weights)
         unknown = set(weights) - set(REWARD_TERMS)
         if unknown:
@@ -650,6 +657,7 @@ class ActorCritic(nn.Module):
         dynamics = self.gradient == "dynamics"
         metrics: dict[str, th.Tensor] = {}
         advantage = th.zeros_like(w)
+        raw_advantage = th.zeros_like(w)  # reinforce_advantage="raw" only
         critic_loss = feats.new_zeros(())
         for name, alpha in self.reward_weights.items():
             critic = self.critics[name]
@@ -666,6 +674,8 @@ class ActorCritic(nn.Module):
             )  # (H, *B)
             _, scale = self.normalizers[name](returns, update=update_normalizers)
             advantage = advantage + alpha * (returns - values[:-1]) / scale
+            if self.reinforce_advantage == "raw":
+                raw_advantage = raw_advantage + alpha * (returns - values[:-1])
             c_loss, c_metrics = critic.loss(feats_sg[:-1], returns.detach(), w, dist=fast)
             critic_loss = critic_loss + c_loss
             metrics[f"{name}/return_mean"] = returns.mean().detach()
@@ -677,6 +687,9 @@ class ActorCritic(nn.Module):
         entropy = dist.entropy()  # (H, *B)
         if dynamics:
             objective = advantage
+        elif self.reinforce_advantage == "raw":  # reference code: unnormalised weighted average (note 8.3)
+            advantage = raw_advantage / sum(self.reward_weights.values())
+            objective = dist.log_prob(actions.detach()) * advantage.detach()
         else:
             objective = dist.log_prob(actions.detach()) * advantage.detach()
         actor_loss = -(w * (objective + self.entropy_coef * entropy)).mean()

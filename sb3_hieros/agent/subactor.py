@@ -47,7 +47,7 @@ Documented choices:
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -189,8 +189,9 @@ class Subactor(nn.Module):
         if self.subgoal_input:
             goal_feat = self.h_dim if self.decoded_subgoal_input else self.subgoal_dim
         self.feat_dim = actor_input_dim(self.h_dim, self.z_dim, goal_feat, ac.actor_extras)
+        extrinsic_here = config.extrinsic_reward_levels == "all" or not self.subgoal_input  # ablation 5.3.10
         weights = {
-            "extrinsic": ac.extrinsic_weight,
+            "extrinsic": ac.extrinsic_weight if extrinsic_here else 0.0,
             "subgoal": ac.subgoal_weight if self.subgoal_input else 0.0,
             "novelty": ac.novelty_weight,
         }
@@ -208,7 +209,11 @@ class Subactor(nn.Module):
             gradient=self.imag_gradient,
             unimix=ac.unimix,
             slow_fraction=ac.slow_critic_fraction,
+            reinforce_advantage=config.reference.reinforce_advantage,
         )
+        #: ablation 5.3.9: ``fn(window, subgoal, carry) -> (new_subgoal, carry)`` called every ``subgoal_interval``
+        #: imagined steps (see :meth:`_imagine_updating_subgoals`); None holds the replay subgoal fixed (thesis default)
+        self.imagination_subgoal_fn: Callable[[th.Tensor, th.Tensor, Any], tuple[th.Tensor, Any]] | None = None
 
         self.wm_optimizer = world_model_optimizer(self.world_model)
         self.wm_scheduler: th.optim.lr_scheduler.LRScheduler | None = world_model_lr_scheduler(
@@ -494,6 +499,56 @@ class Subactor(nn.Module):
         trajectory = LatentState(*(th.stack(fields, 0) for fields in zip(*states, strict=True)))
         return trajectory, th.stack(feats, 0), th.stack(actions, 0), th.stack(rewards, 0), th.stack(conts, 0)
 
+    def _imagine_updating_subgoals(
+        self, start: LatentState, codes: th.Tensor
+    ) -> tuple[LatentState, th.Tensor, th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
+        """:meth:`_imagine` with the subgoal re-planned every k imagined steps (ablation 5.3.9).
+
+        At every imagined step t > 0 with ``t % subgoal_interval == 0`` the level above is invoked through
+        :attr:`imagination_subgoal_fn` with the world states ``[h, z]`` of the last k imagined states s_{t-k+1..t}
+        (N, k, D + G*K), the subgoal code in force and its carry (None at the first call of a rollout); it returns the
+        new subgoal code and the carry for its next call. The actor sees the new subgoal from s_t on. The subgoal
+        reward of s_t is measured against the subgoal that was in force when a_{t-1} was chosen.
+
+        :param start: (N,) detached posterior states
+        :param codes: (N, n_cat * n_classes) subgoal codes of the replay rows (in force at s_0)
+        :return: as :meth:`_imagine`, plus (H+1, N, D) decoded subgoal targets of the subgoal reward per state
+        """
+        fn = self.imagination_subgoal_fn
+        if fn is None:
+            raise ValueError(
+                "imagination_subgoal_fn is not set: the policy installs it (update_subgoals_in_imagination)"
+            )
+        wm, actor = self.world_model, self.actor_critic.actor
+        horizon, k = self.config.imag_horizon, self.config.subgoal_interval
+        state, code, carry = start, codes, None
+        with th.no_grad():
+            target = self.autoencoder.decode(code)  # (N, D)
+        goal_feat = target if self.decoded_subgoal_input else code
+        states, feats, actions, rewards, conts, targets = [start], [], [], [], [], [target]
+        for t in range(horizon + 1):
+            if t > 0 and t % k == 0:
+                with th.no_grad():
+                    window = th.stack([wm.features(s.detach()) for s in states[-k:]], 1)  # (N, k, D + G*K)
+                    code, carry = fn(window, code, carry)
+                    code = code.reshape(code.shape[0], self.subgoal_dim).float()
+                    target = self.autoencoder.decode(code)
+                goal_feat = target if self.decoded_subgoal_input else code
+            feat, reward, cont = self._features(state, goal_feat)
+            feats.append(feat)
+            rewards.append(reward)
+            conts.append(cont)
+            if t == horizon:
+                break
+            action = actor(feat.detach()).sample()  # (N, *action_shape)
+            actions.append(action)
+            state, _ = wm.img_step(state, action.reshape(action.shape[0], self.action_dim))
+            states.append(state)
+            targets.append(target)  # pursued by a_t, which leads to s_{t+1}
+        trajectory = LatentState(*(th.stack(fields, 0) for fields in zip(*states, strict=True)))
+        stacked = (th.stack(feats, 0), th.stack(actions, 0), th.stack(rewards, 0), th.stack(conts, 0))
+        return trajectory, *stacked, th.stack(targets, 0)
+
     @staticmethod
     def _guarded_step(loss: th.Tensor, optimizer: th.optim.Optimizer, *grad_norms: th.Tensor) -> float:
         """``optimizer.step()`` unless ``loss`` or a gradient norm is non-finite (:func:`step_if_finite`).
@@ -556,7 +611,10 @@ class Subactor(nn.Module):
             goal_feat = goal if self.decoded_subgoal_input else flat_goals
         dynamics = self.imag_gradient == "dynamics"
         with contextlib.nullcontext() if dynamics else th.no_grad():
-            traj, feats, actions, ext_reward, cont_pred = self._imagine(start, goal_feat)
+            if self.imagination_subgoal_fn is not None and subgoals is not None:  # ablation 5.3.9
+                traj, feats, actions, ext_reward, cont_pred, goal = self._imagine_updating_subgoals(start, flat_goals)
+            else:
+                traj, feats, actions, ext_reward, cont_pred = self._imagine(start, goal_feat)
 
             # (3) rewards per state s_0..s_H (index 0 unused by the returns)
             rewards = {"extrinsic": ext_reward}
