@@ -468,7 +468,10 @@ class Subactor(nn.Module):
         return checked, subgoals
 
     def _imagine(
-        self, start: LatentState, goal_feat: th.Tensor | None
+        self,
+        start: LatentState,
+        goal_feat: th.Tensor | None,
+        replan: Callable[[list[LatentState]], th.Tensor] | None = None,
     ) -> tuple[LatentState, th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
         """Roll out ``imag_horizon`` steps with the current actor (thesis 4.4.3, Algorithm 2 line 7).
 
@@ -477,15 +480,20 @@ class Subactor(nn.Module):
         the gradient into the rollout.
 
         :param start: (N,) detached posterior states
-        :param goal_feat: (N, S') subgoal features, constant over the horizon, or None
+        :param goal_feat: (N, S') subgoal features in force at s_0, or None
+        :param replan: None holds ``goal_feat`` over the horizon (thesis default); otherwise it is called at every
+            imagined step t > 0 with ``t % subgoal_interval == 0`` with the states s_0..s_t so far and returns the
+            subgoal features in force from s_t on (ablation 5.3.9)
         :return: states (H+1, N), features (H+1, N, F), actions (H, N, *action_shape), predicted rewards (H+1, N),
             continue probabilities (H+1, N)
         """
         wm, actor = self.world_model, self.actor_critic.actor
-        horizon = self.config.imag_horizon
+        horizon, k = self.config.imag_horizon, self.config.subgoal_interval
         state = start
         states, feats, actions, rewards, conts = [start], [], [], [], []
         for t in range(horizon + 1):
+            if replan is not None and t > 0 and t % k == 0:
+                goal_feat = replan(states)
             feat, reward, cont = self._features(state, goal_feat)
             feats.append(feat)
             rewards.append(reward)
@@ -519,35 +527,28 @@ class Subactor(nn.Module):
             raise ValueError(
                 "imagination_subgoal_fn is not set: the policy installs it (update_subgoals_in_imagination)"
             )
-        wm, actor = self.world_model, self.actor_critic.actor
+        wm = self.world_model
         horizon, k = self.config.imag_horizon, self.config.subgoal_interval
-        state, code, carry = start, codes, None
         with th.no_grad():
-            target = self.autoencoder.decode(code)  # (N, D)
-        goal_feat = target if self.decoded_subgoal_input else code
-        states, feats, actions, rewards, conts, targets = [start], [], [], [], [], [target]
-        for t in range(horizon + 1):
-            if t > 0 and t % k == 0:
-                with th.no_grad():
-                    window = th.stack([wm.features(s.detach()) for s in states[-k:]], 1)  # (N, k, D + G*K)
-                    code, carry = fn(window, code, carry)
-                    code = code.reshape(code.shape[0], self.subgoal_dim).float()
-                    target = self.autoencoder.decode(code)
-                goal_feat = target if self.decoded_subgoal_input else code
-            feat, reward, cont = self._features(state, goal_feat)
-            feats.append(feat)
-            rewards.append(reward)
-            conts.append(cont)
-            if t == horizon:
-                break
-            action = actor(feat.detach()).sample()  # (N, *action_shape)
-            actions.append(action)
-            state, _ = wm.img_step(state, action.reshape(action.shape[0], self.action_dim))
-            states.append(state)
-            targets.append(target)  # pursued by a_t, which leads to s_{t+1}
-        trajectory = LatentState(*(th.stack(fields, 0) for fields in zip(*states, strict=True)))
-        stacked = (th.stack(feats, 0), th.stack(actions, 0), th.stack(rewards, 0), th.stack(conts, 0))
-        return trajectory, *stacked, th.stack(targets, 0)
+            target = self.autoencoder.decode(codes)  # (N, D)
+        planned = [target]  # planned[j]: decoded subgoal in force at the imagined steps j*k .. (j+1)*k - 1
+        plan: dict[str, Any] = {"code": codes, "carry": None}
+
+        def goal_features(code: th.Tensor, decoded: th.Tensor) -> th.Tensor:
+            return decoded if self.decoded_subgoal_input else code
+
+        @th.no_grad()
+        def replan(states: list[LatentState]) -> th.Tensor:
+            window = th.stack([wm.features(s.detach()) for s in states[-k:]], 1)  # (N, k, D + G*K)
+            code, plan["carry"] = fn(window, plan["code"], plan["carry"])
+            plan["code"] = code.reshape(code.shape[0], self.subgoal_dim).float()
+            planned.append(self.autoencoder.decode(plan["code"]))
+            return goal_features(plan["code"], planned[-1])
+
+        rollout = self._imagine(start, goal_features(codes, target), replan)
+        # the target of s_{t+1} is the one pursued by a_t, i.e. in force at step t
+        targets = th.stack([target] + [planned[t // k] for t in range(horizon)], 0)
+        return (*rollout, targets)
 
     @staticmethod
     def _guarded_step(loss: th.Tensor, optimizer: th.optim.Optimizer, *grad_norms: th.Tensor) -> float:
