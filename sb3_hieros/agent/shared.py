@@ -39,8 +39,8 @@ import torch as th
 from gymnasium import spaces
 from torch import nn
 
-from sb3_hieros.agent.actor_critic import ActorCritic, actor_input, actor_input_dim
-from sb3_hieros.agent.subactor import Subactor, subgoal_space
+from sb3_hieros.agent.actor_critic import actor_input, actor_input_dim
+from sb3_hieros.agent.subactor import Subactor, level_actor_critic, level_optimizers, subgoal_space
 from sb3_hieros.agent.subgoal import SubgoalAutoencoder, max_cosine_subgoal_reward, novelty_reward
 from sb3_hieros.agent.world_model import LatentState
 from sb3_hieros.buffers import SequenceSamples
@@ -104,35 +104,12 @@ class SharedLevel(nn.Module):
         goal_feat = (h_dim if self.decoded_subgoal_input else self.subgoal_dim) if self.subgoal_input else 0
         obs_dim = window * state_dim
         self.feat_dim = actor_input_dim(obs_dim - stoch_dim, stoch_dim, goal_feat, ac.actor_extras)
-        extrinsic_here = config.extrinsic_reward_levels == "all" or not self.subgoal_input  # ablation 5.3.10
-        weights = {
-            "extrinsic": ac.extrinsic_weight if extrinsic_here else 0.0,
-            "subgoal": ac.subgoal_weight if self.subgoal_input else 0.0,
-            "novelty": ac.novelty_weight,
-        }
-        self.actor_critic = ActorCritic(
-            self.feat_dim,
-            "discrete",
-            sg.n_classes,
-            sg.n_cat,
-            hidden=ac.units,
-            layers=ac.layers,
-            reward_weights=weights,
-            discount=ac.discount,
-            lambda_=ac.lambda_,
-            entropy_coef=ac.entropy,
-            gradient="reinforce",
-            unimix=ac.unimix,
-            slow_fraction=ac.slow_critic_fraction,
-            reinforce_advantage=config.reference.reinforce_advantage,
+        self.actor_critic = level_actor_critic(
+            self.feat_dim, "discrete", sg.n_classes, sg.n_cat, "reinforce", config, self.subgoal_input
         )
-        self.actor_optimizer = th.optim.AdamW(
-            self.actor_critic.actor_parameters(), lr=ac.actor_lr, eps=ac.eps, weight_decay=0.0
+        self.actor_optimizer, self.critic_optimizer, self.ae_optimizer = level_optimizers(
+            self.actor_critic, self.autoencoder, config
         )
-        self.critic_optimizer = th.optim.AdamW(
-            self.actor_critic.critic_parameters(), lr=ac.critic_lr, eps=ac.eps, weight_decay=0.0
-        )
-        self.ae_optimizer = th.optim.AdamW(self.autoencoder.parameters(), lr=sg.lr, eps=sg.eps, weight_decay=0.0)
 
     @property
     def reward_terms(self) -> tuple[str, ...]:

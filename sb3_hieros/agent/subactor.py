@@ -69,7 +69,14 @@ from sb3_hieros.buffers import SequenceSamples
 from sb3_hieros.config import HierosConfig, SubgoalConfig
 from sb3_hieros.nn.guard import step_if_finite
 
-__all__ = ["SUBGOAL_SUCCESS_THRESHOLD", "Subactor", "action_layout", "subgoal_space"]
+__all__ = [
+    "SUBGOAL_SUCCESS_THRESHOLD",
+    "Subactor",
+    "action_layout",
+    "level_actor_critic",
+    "level_optimizers",
+    "subgoal_space",
+]
 
 #: A subgoal counts as reached when the max-cosine reward (eq. 4.4) of the last imagined state is at least this.
 SUBGOAL_SUCCESS_THRESHOLD = 0.5
@@ -117,6 +124,63 @@ def action_layout(action_space: spaces.Space) -> tuple[str, int, int]:
         return "box", int(action_space.shape[0]), 1
     raise ValueError(
         f"action_space must be Discrete, MultiDiscrete (subgoals) or a 1-d Box, got {type(action_space).__name__}"
+    )
+
+
+def level_actor_critic(
+    feat_dim: int, kind: str, classes: int, groups: int, gradient: str, config: HierosConfig, subgoal_input: bool
+) -> ActorCritic:
+    """The actor-critic of one level with the reward weights of eq. 4.3 (and the switch of ablation 5.3.10).
+
+    :param feat_dim: actor / critic input size
+    :param kind: ``"discrete"`` or ``"box"``
+    :param classes: classes per categorical (discrete) or action dims (box)
+    :param groups: number of categoricals
+    :param gradient: ``"reinforce"`` or ``"dynamics"``
+    :param config: hyperparameters (``actor_critic``, ``extrinsic_reward_levels``, ``reference``)
+    :param subgoal_input: False for the top level (no subgoal critic)
+    :return: the actor-critic
+    """
+    ac = config.actor_critic
+    extrinsic_here = config.extrinsic_reward_levels == "all" or not subgoal_input  # ablation 5.3.10
+    weights = {
+        "extrinsic": ac.extrinsic_weight if extrinsic_here else 0.0,
+        "subgoal": ac.subgoal_weight if subgoal_input else 0.0,
+        "novelty": ac.novelty_weight,
+    }
+    return ActorCritic(
+        feat_dim,
+        kind,
+        classes,
+        groups,
+        hidden=ac.units,
+        layers=ac.layers,
+        reward_weights=weights,
+        discount=ac.discount,
+        lambda_=ac.lambda_,
+        entropy_coef=ac.entropy,
+        gradient=gradient,
+        unimix=ac.unimix,
+        slow_fraction=ac.slow_critic_fraction,
+        reinforce_advantage=config.reference.reinforce_advantage,
+    )
+
+
+def level_optimizers(
+    actor_critic: ActorCritic, autoencoder: SubgoalAutoencoder, config: HierosConfig
+) -> tuple[th.optim.Optimizer, th.optim.Optimizer, th.optim.Optimizer]:
+    """AdamW optimisers (no weight decay) of the actor, the critics and the subgoal autoencoder of one level.
+
+    :param actor_critic: the level's actor-critic
+    :param autoencoder: the level's subgoal autoencoder
+    :param config: hyperparameters (``actor_critic`` and ``subgoal`` sections)
+    :return: (actor, critic, autoencoder) optimisers
+    """
+    ac, sg = config.actor_critic, config.subgoal
+    return (
+        th.optim.AdamW(actor_critic.actor_parameters(), lr=ac.actor_lr, eps=ac.eps, weight_decay=0.0),
+        th.optim.AdamW(actor_critic.critic_parameters(), lr=ac.critic_lr, eps=ac.eps, weight_decay=0.0),
+        th.optim.AdamW(autoencoder.parameters(), lr=sg.lr, eps=sg.eps, weight_decay=0.0),
     )
 
 
@@ -189,27 +253,8 @@ class Subactor(nn.Module):
         if self.subgoal_input:
             goal_feat = self.h_dim if self.decoded_subgoal_input else self.subgoal_dim
         self.feat_dim = actor_input_dim(self.h_dim, self.z_dim, goal_feat, ac.actor_extras)
-        extrinsic_here = config.extrinsic_reward_levels == "all" or not self.subgoal_input  # ablation 5.3.10
-        weights = {
-            "extrinsic": ac.extrinsic_weight if extrinsic_here else 0.0,
-            "subgoal": ac.subgoal_weight if self.subgoal_input else 0.0,
-            "novelty": ac.novelty_weight,
-        }
-        self.actor_critic = ActorCritic(
-            self.feat_dim,
-            kind,
-            classes,
-            groups,
-            hidden=ac.units,
-            layers=ac.layers,
-            reward_weights=weights,
-            discount=ac.discount,
-            lambda_=ac.lambda_,
-            entropy_coef=ac.entropy,
-            gradient=self.imag_gradient,
-            unimix=ac.unimix,
-            slow_fraction=ac.slow_critic_fraction,
-            reinforce_advantage=config.reference.reinforce_advantage,
+        self.actor_critic = level_actor_critic(
+            self.feat_dim, kind, classes, groups, self.imag_gradient, config, self.subgoal_input
         )
         #: ablation 5.3.9: ``fn(window, subgoal, carry) -> (new_subgoal, carry)`` called every ``subgoal_interval``
         #: imagined steps (see :meth:`_imagine_updating_subgoals`); None holds the replay subgoal fixed (thesis default)
@@ -219,13 +264,9 @@ class Subactor(nn.Module):
         self.wm_scheduler: th.optim.lr_scheduler.LRScheduler | None = world_model_lr_scheduler(
             self.wm_optimizer, config.world_model.warmup
         )
-        self.actor_optimizer = th.optim.AdamW(
-            self.actor_critic.actor_parameters(), lr=ac.actor_lr, eps=ac.eps, weight_decay=0.0
+        self.actor_optimizer, self.critic_optimizer, self.ae_optimizer = level_optimizers(
+            self.actor_critic, self.autoencoder, config
         )
-        self.critic_optimizer = th.optim.AdamW(
-            self.actor_critic.critic_parameters(), lr=ac.critic_lr, eps=ac.eps, weight_decay=0.0
-        )
-        self.ae_optimizer = th.optim.AdamW(self.autoencoder.parameters(), lr=sg.lr, eps=sg.eps, weight_decay=0.0)
 
     # ------------------------------------------------------------------------------------------------ spaces
 
