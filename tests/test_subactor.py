@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from gymnasium import spaces
 from hieros_helpers import TINY_WORLD_MODEL
 
-from sb3_hieros.agent.subactor import Subactor, action_layout, subgoal_space
+from sb3_hieros.agent.subactor import Subactor, action_layout, imagination_start_indices, subgoal_space
 from sb3_hieros.agent.world_model import LatentState
 from sb3_hieros.buffers import SequenceSamples
 from sb3_hieros.config import get_preset
@@ -30,6 +30,7 @@ def tiny_config(**changes):
     }
     for name in sections:
         sections[name].update(changes.pop(name, {}))
+    changes.setdefault("imag_start_fraction", 1.0)  # the thesis' all-states imagination unless a test says otherwise
     return get_preset("small").replace(batch_size=B, batch_length=T, imag_horizon=H, **sections, **changes)
 
 
@@ -190,6 +191,47 @@ def test_imagined_rewards_and_continues_are_aligned():
     goal_slice = slice(sub.h_dim + sub.z_dim, sub.h_dim + sub.z_dim + sub.subgoal_dim)
     expected = samples.subgoals.reshape(n, sub.subgoal_dim).expand(H + 1, n, sub.subgoal_dim)
     assert th.equal(seen["feats"][..., goal_slice], expected)
+
+
+@pytest.mark.parametrize("fraction", [0.5, 0.2])
+def test_imagination_starts_from_a_share_of_the_rows(monkeypatch, fraction):
+    """imag_start_fraction < 1: the chosen rows keep their own continue flag and subgoal (Algorithm 2 line 6)."""
+    from sb3_hieros.agent import subactor as subactor_module
+
+    sub = make_subactor(config=tiny_config(imag_start_fraction=fraction), subgoal_input=True)
+    picked, seen = [], {}
+    original_indices, original_loss = subactor_module.imagination_start_indices, sub.actor_critic.loss
+
+    def recording_indices(*args):
+        picked.append(original_indices(*args))
+        return picked[-1]
+
+    def recording_loss(feats, actions, rewards, continues, *args, **kwargs):
+        seen.update(feats=feats, continues=continues)
+        return original_loss(feats, actions, rewards, continues, *args, **kwargs)
+
+    monkeypatch.setattr(subactor_module, "imagination_start_indices", recording_indices)
+    sub.actor_critic.loss = recording_loss
+    samples = random_samples(sub, terminal_at=((0, 3), (1, 7), (1, 2)))
+    sub.train_step(samples)
+    n_all = B * T
+    (chosen,) = picked
+    assert chosen.shape == (round(fraction * n_all),) and len(set(chosen.tolist())) == len(chosen)
+    assert seen["feats"].shape == (H + 1, len(chosen), sub.feat_dim)
+    assert th.equal(seen["continues"][0], 1.0 - samples.is_terminal.reshape(n_all).float()[chosen])
+    goal_slice = slice(sub.h_dim + sub.z_dim, sub.h_dim + sub.z_dim + sub.subgoal_dim)
+    assert th.equal(seen["feats"][0, :, goal_slice], samples.subgoals.reshape(n_all, sub.subgoal_dim)[chosen])
+
+
+def test_imagination_start_indices():
+    assert imagination_start_indices(10, 1.0, th.device("cpu")) is None
+    idx = imagination_start_indices(10, 0.3, th.device("cpu"))
+    assert idx.shape == (3,) and idx.unique().numel() == 3 and int(idx.max()) < 10
+    assert imagination_start_indices(10, 0.01, th.device("cpu")).shape == (1,)  # never zero starts
+    with pytest.raises(ValueError, match="fraction"):
+        imagination_start_indices(10, 0.0, th.device("cpu"))
+    with pytest.raises(ValueError, match="imag_start_fraction"):
+        tiny_config(imag_start_fraction=1.5)
 
 
 def test_reward_terms_follow_the_weights():

@@ -40,7 +40,13 @@ from gymnasium import spaces
 from torch import nn
 
 from sb3_hieros.agent.actor_critic import actor_input, actor_input_dim
-from sb3_hieros.agent.subactor import Subactor, level_actor_critic, level_optimizers, subgoal_space
+from sb3_hieros.agent.subactor import (
+    Subactor,
+    imagination_start_indices,
+    level_actor_critic,
+    level_optimizers,
+    subgoal_space,
+)
 from sb3_hieros.agent.subgoal import SubgoalAutoencoder, max_cosine_subgoal_reward, novelty_reward
 from sb3_hieros.agent.world_model import LatentState
 from sb3_hieros.buffers import SequenceSamples
@@ -325,13 +331,19 @@ def train_shared_hierarchy(
 
     # (2) joint imagination from every posterior state
     start = post.flatten_batch()
-    n = int(start.batch_shape[0])
+    n_all = int(start.batch_shape[0])
+    first_cont = 1.0 - samples.is_terminal.reshape(n_all).float()  # (N,)
     with th.no_grad():
         chunk_states = wm.features(post)  # (B, T, D + G*K)
         windows = [None] + [
-            start_windows(chunk_states, is_first, levels[i].window).reshape(n, levels[i].window, -1)
+            start_windows(chunk_states, is_first, levels[i].window).reshape(n_all, levels[i].window, -1)
             for i in range(1, n_levels)
         ]
+    chosen = imagination_start_indices(n_all, config.imag_start_fraction, first_cont.device)
+    if chosen is not None:
+        start, first_cont = start.select(chosen), first_cont[chosen]
+        windows = [None] + [w[chosen] for w in windows[1:]]
+    n = int(start.batch_shape[0])
     dynamics = level0.imag_gradient == "dynamics"
     extras = config.actor_critic.actor_extras
     with contextlib.nullcontext() if dynamics else th.no_grad():
@@ -373,7 +385,6 @@ def train_shared_hierarchy(
                 windows[i] = th.cat([windows[i][:, 1:], newest], 1)
         traj = LatentState(*(th.stack(fields, 0) for fields in zip(*states, strict=True)))
         reward_all, cont_all = th.stack(rewards, 0), th.stack(conts, 0)  # (H+1, N)
-        first_cont = 1.0 - samples.is_terminal.reshape(n).float()
 
         # (3) level 0: every imagined step; the subgoal reward of s_t against the subgoal a_{t-1} pursued
         targets = th.stack([level0.autoencoder.decode(c) for c in [used[0][0], *used[0][:-1]]], 0).detach()

@@ -184,6 +184,25 @@ def level_optimizers(
     )
 
 
+def imagination_start_indices(n_states: int, fraction: float, device: th.device) -> th.Tensor | None:
+    """Which of the B*T posterior states of a batch start an imagination rollout (Algorithm 2 line 6).
+
+    The thesis and DreamerV3 start from all of them (``fraction=1``); otherwise ``max(1, round(fraction * N))`` are
+    drawn uniformly without replacement (torch's global generator, so seeded runs stay reproducible).
+
+    :param n_states: posterior states of the batch, N = B*T
+    :param fraction: share of the states to start from, in (0, 1]
+    :param device: device of the indices
+    :return: (n,) indices into the N states, or None for all of them
+    """
+    if not 0.0 < fraction <= 1.0:
+        raise ValueError(f"fraction must be in (0, 1], got {fraction!r}")
+    count = max(1, round(fraction * n_states))
+    if count >= n_states:
+        return None
+    return th.randperm(n_states, device=device)[:count]
+
+
 def _count(params: Any) -> int:
     return sum(p.numel() for p in params)
 
@@ -606,8 +625,8 @@ class Subactor(nn.Module):
         """One training iteration of this level on a batch of chunks (Algorithm 2, thesis 4.6.2).
 
         1. World-model step on the chunk (eq. 4.10-4.13, warm-up scheduler, clip ``world_model.grad_clip``).
-        2. Imagination of ``imag_horizon`` steps from all B*T detached posterior states, each with the subgoal of its
-           replay row held fixed.
+        2. Imagination of ``imag_horizon`` steps from all B*T detached posterior states (or the share
+           ``imag_start_fraction`` of them, :func:`imagination_start_indices`), each row's subgoal held fixed.
         3. Rewards per imagined state (eq. 4.3-4.5): extrinsic = reward head; subgoal = max-cosine of h and the
            decoded subgoal (not at the top level); novelty = autoencoder reconstruction error of h (no gradient).
            Continues: ``1 - is_terminal`` for the start state, the continue head afterwards.
@@ -642,12 +661,18 @@ class Subactor(nn.Module):
         metrics["nonfinite/world_model"] = metrics.pop("wm/nonfinite")
         metrics["wm/lr"] = float(self.wm_optimizer.param_groups[0]["lr"])
 
-        # (2) imagination from every posterior state, subgoal of the row held fixed
+        # (2) imagination from every posterior state (or imag_start_fraction of them), subgoal of the row held fixed
         start = post.flatten_batch()  # (N,) with N = B*T, detached
-        n = int(start.batch_shape[0])
+        first_cont = 1.0 - batch.is_terminal.reshape(-1).float()  # (N,)
+        flat_goals = None if subgoals is None else subgoals.reshape(-1, self.subgoal_dim)  # (N, G)
+        chosen = imagination_start_indices(
+            int(start.batch_shape[0]), self.config.imag_start_fraction, start.deter.device
+        )
+        if chosen is not None:
+            start, first_cont = start.select(chosen), first_cont[chosen]
+            flat_goals = None if flat_goals is None else flat_goals[chosen]
         goal = goal_feat = None
-        if subgoals is not None:
-            flat_goals = subgoals.reshape(n, self.subgoal_dim)
+        if flat_goals is not None:
             with th.no_grad():
                 goal = self.autoencoder.decode(flat_goals)  # (N, D): target in this level's h space
             goal_feat = goal if self.decoded_subgoal_input else flat_goals
@@ -665,7 +690,6 @@ class Subactor(nn.Module):
             if "novelty" in self.reward_terms:
                 with th.no_grad():
                     rewards["novelty"] = novelty_reward(traj.deter, self.autoencoder)
-        first_cont = 1.0 - batch.is_terminal.reshape(n).float()
         continues = th.cat([first_cont.unsqueeze(0), cont_pred[1:].detach()], 0)  # (H+1, N)
 
         # (4) actor and critics
