@@ -211,6 +211,21 @@ def test_nonfinite_batch_changes_nothing():
     assert any(not th.equal(value, before[key]) for key, value in sub.state_dict().items())
 
 
+def test_nan_inside_the_world_model_is_skipped_not_raised():
+    """A NaN born inside the network (here the encoder's output, before the S5 stack) is a skipped update."""
+    model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(n_levels=1))
+    model.learn(40)
+    sub = model.policy.subactor(0)
+    before = {k: v.clone() for k, v in sub.world_model.state_dict().items()}
+    encoder = sub.world_model.encoder
+    original = encoder.forward
+    encoder.forward = lambda *args, **kwargs: original(*args, **kwargs) * float("nan")  # type: ignore[method-assign]
+    metrics = sub.train_step(model.replay_buffer.sample(2))
+    assert metrics["nonfinite/world_model"] == 1.0
+    for key, value in sub.world_model.state_dict().items():
+        assert th.equal(value, before[key]), key
+
+
 def _poison_world_model(model: HIEROS, level: int, n_bad: int | None) -> None:
     """Make the first ``n_bad`` world-model losses of ``level`` NaN (all of them with None)."""
     wm = model.policy.subactor(level).world_model

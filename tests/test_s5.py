@@ -333,12 +333,9 @@ def _bad_calls():
     layer = S5Layer(H, P, J)
     stack = S5Stack(2, H, P, J)
     x, reset = _inputs()
-    nan_x = x.clone()
-    nan_x[0, 1, 2] = float("nan")
     return [
         ("x", lambda: layer(x[0], reset)),
         ("x", lambda: layer(x[..., :-1], reset)),
-        ("x", lambda: layer(nan_x, reset)),
         ("x", lambda: layer(x.long(), reset)),
         ("reset", lambda: layer(x, reset[:, :-1])),
         ("reset", lambda: layer(x, reset[:2])),
@@ -350,12 +347,22 @@ def _bad_calls():
         ("state", lambda: layer.step(x[:, 0], _random_state(2, P), None)),
         ("state", lambda: stack(x, reset, _random_state(3, P))),
         ("state", lambda: stack.step(x[:, 0], _random_state(3, 3, P))),
-        ("x", lambda: stack.step(nan_x[:, 1], None)),
     ]
 
 
-@pytest.mark.parametrize("index", range(15))
+@pytest.mark.parametrize("index", range(13))
 def test_bad_inputs_raise_value_error(index):
     name, call = _bad_calls()[index]
     with pytest.raises(ValueError, match=rf"^{name}\b"):
         call()
+
+
+def test_nonfinite_inputs_propagate_without_raising():
+    """Like torch's own layers, S5 passes NaN through (no device sync per call); the optimiser guard skips the step."""
+    stack = S5Stack(2, H, P, J)
+    x, reset = _inputs()
+    x[0, 1, 2] = float("nan")
+    y, _ = stack(x, reset)
+    assert torch.isnan(y[0, 1:]).any() and torch.isfinite(y[1:]).all()
+    y_step, _ = stack.step(x[:, 1], None)
+    assert torch.isnan(y_step[0]).any() and torch.isfinite(y_step[1:]).all()
