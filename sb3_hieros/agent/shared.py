@@ -43,15 +43,16 @@ from sb3_hieros.agent.actor_critic import actor_input, actor_input_dim
 from sb3_hieros.agent.subactor import (
     Subactor,
     imagination_start_indices,
+    learn_from_imagination,
     level_actor_critic,
     level_optimizers,
+    metric_floats,
     subgoal_space,
 )
 from sb3_hieros.agent.subgoal import SubgoalAutoencoder, max_cosine_subgoal_reward, novelty_reward
 from sb3_hieros.agent.world_model import LatentState
 from sb3_hieros.buffers import SequenceSamples
 from sb3_hieros.config import HierosConfig
-from sb3_hieros.nn.guard import step_if_finite
 
 __all__ = ["SharedLevel", "start_windows", "train_shared_hierarchy"]
 
@@ -235,68 +236,6 @@ def start_windows(features: th.Tensor, is_first: th.Tensor, size: int) -> th.Ten
     return windows * valid.unsqueeze(-1)
 
 
-def _learn(
-    level: Subactor | SharedLevel,
-    feats: th.Tensor,
-    actions: th.Tensor,
-    rewards: dict[str, th.Tensor],
-    continues: th.Tensor,
-    h_all: th.Tensor,
-) -> dict[str, th.Tensor]:
-    """Actor, critic and autoencoder steps of one level on its imagined trajectory (as in ``Subactor.train_step``).
-
-    :param level: the level
-    :param feats: (M+1, N, F) actor inputs
-    :param actions: (M, N, *action_shape)
-    :param rewards: term -> (M+1, N)
-    :param continues: (M+1, N)
-    :param h_all: (..., D) states the autoencoder trains on
-    :return: metric tensors (0-d)
-    """
-    config = level.config
-    out: dict[str, th.Tensor] = {}
-    ac = level.actor_critic
-    retnorm_state = {k: v.clone() for k, v in ac.normalizers.state_dict().items()}
-    actor_loss, critic_loss, ac_metrics = ac.loss(feats, actions, rewards, continues)
-    actor_params = list(ac.actor_parameters())
-    level.actor_optimizer.zero_grad(set_to_none=True)
-    actor_loss.backward(inputs=actor_params)
-    out["actor/grad_norm"] = nn.utils.clip_grad_norm_(actor_params, config.actor_critic.grad_clip)
-    actor_ok = step_if_finite(level.actor_optimizer, actor_loss, out["actor/grad_norm"])
-    critic_params = list(ac.critic_parameters())
-    level.critic_optimizer.zero_grad(set_to_none=True)
-    critic_loss.backward(inputs=critic_params)
-    norms = [nn.utils.clip_grad_norm_(c.net.parameters(), config.actor_critic.grad_clip) for c in ac.critics.values()]
-    critic_ok = step_if_finite(level.critic_optimizer, critic_loss, *norms)
-    if not (actor_ok and critic_ok):
-        ac.normalizers.load_state_dict(retnorm_state)
-    if critic_ok:
-        ac.update_slow_critics()
-    ae_params = list(level.autoencoder.parameters())
-    ae_loss, ae_metrics = level.autoencoder.loss(h_all.detach().reshape(-1, h_all.shape[-1]))
-    level.ae_optimizer.zero_grad(set_to_none=True)
-    ae_loss.backward(inputs=ae_params)
-    out["ae/grad_norm"] = nn.utils.clip_grad_norm_(ae_params, config.subgoal.grad_clip)
-    ae_ok = step_if_finite(level.ae_optimizer, ae_loss, out["ae/grad_norm"])
-    one = feats.new_ones(())
-    out["nonfinite/actor"] = one * (not actor_ok)
-    out["nonfinite/critic"] = one * (not critic_ok)
-    out["nonfinite/autoencoder"] = one * (not ae_ok)
-    out["actor/loss"] = ac_metrics["actor_loss"]
-    out["actor/entropy"] = ac_metrics["actor_entropy"]
-    out["actor/advantage_mean"] = ac_metrics["advantage_mean"]
-    out["actor/advantage_std"] = ac_metrics["advantage_std"]
-    out["critic/loss"] = ac_metrics["critic_loss"]
-    for name in ac.active_terms:
-        out[f"return/{name}"] = ac_metrics[f"{name}/return_mean"]
-        out[f"critic/{name}_value"] = ac_metrics[f"{name}/value_mean"]
-    for name, r in rewards.items():
-        out[f"reward/{name}"] = r[1:].detach().mean()
-    for key, value in ae_metrics.items():
-        out["ae/" + key.split("/", 1)[1]] = value
-    return out
-
-
 def train_shared_hierarchy(
     levels: Sequence[nn.Module], samples: SequenceSamples, config: HierosConfig
 ) -> list[dict[str, float]]:
@@ -393,7 +332,9 @@ def train_shared_hierarchy(
             with th.no_grad():
                 rewards0["novelty"] = novelty_reward(traj.deter, level0.autoencoder)
     continues0 = th.cat([first_cont.unsqueeze(0), cont_all[1:].detach()], 0)
-    tensors = _learn(level0, th.stack(feats[0], 0), th.stack(acts[0], 0), rewards0, continues0, traj.deter)
+    tensors = learn_from_imagination(
+        level0, th.stack(feats[0], 0), th.stack(acts[0], 0), rewards0, continues0, traj.deter
+    )
     out = [metrics0]
 
     # (4) level i >= 1: every k**i-th imagined state
@@ -421,11 +362,6 @@ def train_shared_hierarchy(
         feats_i = th.stack(feats[i][: steps + 1], 0)
         acts_i = th.stack(acts[i][:steps], 0)
         out.append({"n_steps": float(steps)})
-        level_tensors = _learn(level, feats_i, acts_i, rewards_i, cont_i, deter)
-        names = list(level_tensors)
-        values = th.stack([level_tensors[key].detach().float().reshape(()) for key in names]).cpu().tolist()
-        out[i].update(zip(names, values, strict=True))
-    names = list(tensors)
-    values = th.stack([tensors[key].detach().float().reshape(()) for key in names]).cpu().tolist()
-    out[0].update(zip(names, values, strict=True))
+        out[i].update(metric_floats(learn_from_imagination(level, feats_i, acts_i, rewards_i, cont_i, deter)))
+    out[0].update(metric_floats(tensors))
     return out

@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch as th
@@ -201,6 +201,102 @@ def imagination_start_indices(n_states: int, fraction: float, device: th.device)
     if count >= n_states:
         return None
     return th.randperm(n_states, device=device)[:count]
+
+
+class ImaginationLearner(Protocol):
+    """What :func:`learn_from_imagination` needs of a level (a :class:`Subactor` or a shared-world-model level)."""
+
+    config: HierosConfig
+    actor_critic: ActorCritic
+    autoencoder: SubgoalAutoencoder
+    actor_optimizer: th.optim.Optimizer
+    critic_optimizer: th.optim.Optimizer
+    ae_optimizer: th.optim.Optimizer
+
+
+def learn_from_imagination(
+    level: ImaginationLearner,
+    feats: th.Tensor,
+    actions: th.Tensor,
+    rewards: dict[str, th.Tensor],
+    continues: th.Tensor,
+    h_all: th.Tensor,
+) -> dict[str, th.Tensor]:
+    """Actor, critic and subgoal-autoencoder steps of one level on its imagined trajectory (Algorithm 2 lines 8-10).
+
+    Actor (eq. 4.6-4.9) and critics (eq. 4.3 terms) each take one guarded step (:func:`step_if_finite`): a skipped
+    actor or critic step also undoes the return normalisers' update, and the slow critics follow only a taken critic
+    step. The autoencoder (eq. 4.2) trains on ``h_all`` detached. Every gradient stays in its own module.
+
+    :param level: the level whose modules and optimisers train
+    :param feats: (M+1, N, F) actor inputs of s_0..s_M
+    :param actions: (M, N, *action_shape) imagined actions
+    :param rewards: term -> (M+1, N) rewards of s_0..s_M (index 0 unused by the returns)
+    :param continues: (M+1, N) continue flags
+    :param h_all: (..., D) deterministic states the autoencoder trains on
+    :return: 0-d metric tensors: ``actor/*``, ``critic/*`` (per term ``<term>_loss``, ``<term>_value``,
+        ``<term>_grad_norm``), ``return/<term>``, ``return/<term>_scale``, ``reward/<term>``, ``ae/*`` and
+        ``nonfinite/{actor,critic,autoencoder}`` (1.0 where that step was skipped)
+    """
+    clip = level.config.actor_critic.grad_clip
+    ac = level.actor_critic
+    out: dict[str, th.Tensor] = {}
+    retnorm_state = {k: v.clone() for k, v in ac.normalizers.state_dict().items()}
+    actor_loss, critic_loss, ac_metrics = ac.loss(feats, actions, rewards, continues)
+    actor_params = list(ac.actor_parameters())
+    level.actor_optimizer.zero_grad(set_to_none=True)
+    actor_loss.backward(inputs=actor_params)  # never accumulates into world model / autoencoder / critics
+    out["actor/grad_norm"] = nn.utils.clip_grad_norm_(actor_params, clip)
+    actor_ok = step_if_finite(level.actor_optimizer, actor_loss, out["actor/grad_norm"])
+    level.critic_optimizer.zero_grad(set_to_none=True)
+    critic_loss.backward(inputs=list(ac.critic_parameters()))
+    for name, critic in ac.critics.items():
+        out[f"critic/{name}_grad_norm"] = nn.utils.clip_grad_norm_(critic.net.parameters(), clip)
+    critic_ok = step_if_finite(level.critic_optimizer, critic_loss, *(out[f"critic/{n}_grad_norm"] for n in ac.critics))
+    if not (actor_ok and critic_ok):  # keep the return statistics finite too
+        ac.normalizers.load_state_dict(retnorm_state)
+    if critic_ok:
+        ac.update_slow_critics()
+
+    ae_params = list(level.autoencoder.parameters())
+    ae_loss, ae_metrics = level.autoencoder.loss(h_all.detach().reshape(-1, h_all.shape[-1]))
+    level.ae_optimizer.zero_grad(set_to_none=True)
+    ae_loss.backward(inputs=ae_params)
+    out["ae/grad_norm"] = nn.utils.clip_grad_norm_(ae_params, level.config.subgoal.grad_clip)
+    ae_ok = step_if_finite(level.ae_optimizer, ae_loss, out["ae/grad_norm"])
+
+    one = feats.new_ones(())
+    out["nonfinite/actor"] = one * (not actor_ok)
+    out["nonfinite/critic"] = one * (not critic_ok)
+    out["nonfinite/autoencoder"] = one * (not ae_ok)
+    out["actor/loss"] = ac_metrics["actor_loss"]
+    out["actor/entropy"] = ac_metrics["actor_entropy"]
+    out["actor/advantage_mean"] = ac_metrics["advantage_mean"]
+    out["actor/advantage_std"] = ac_metrics["advantage_std"]
+    out["critic/loss"] = ac_metrics["critic_loss"]
+    for name in ac.critics:
+        out[f"critic/{name}_loss"] = ac_metrics[f"{name}/critic_loss"]
+        out[f"critic/{name}_value"] = ac_metrics[f"{name}/value_mean"]
+        out[f"return/{name}"] = ac_metrics[f"{name}/return_mean"]
+        out[f"return/{name}_scale"] = ac_metrics[f"{name}/return_scale"]
+    for name, r in rewards.items():
+        out[f"reward/{name}"] = r[1:].detach().mean()
+    for key, value in ae_metrics.items():
+        out["ae/" + key.split("/", 1)[1]] = value
+    return out
+
+
+def metric_floats(tensors: Mapping[str, th.Tensor]) -> dict[str, float]:
+    """0-d metric tensors as Python floats, with one device-to-host copy for all of them.
+
+    :param tensors: name -> 0-d tensor
+    :return: name -> float
+    """
+    names = list(tensors)
+    if not names:
+        return {}
+    values = th.stack([tensors[k].detach().float().reshape(()) for k in names]).cpu().tolist()
+    return dict(zip(names, values, strict=True))
 
 
 def _count(params: Any) -> int:
@@ -610,17 +706,6 @@ class Subactor(nn.Module):
         targets = th.stack([target] + [planned[t // k] for t in range(horizon)], 0)
         return (*rollout, targets)
 
-    @staticmethod
-    def _guarded_step(loss: th.Tensor, optimizer: th.optim.Optimizer, *grad_norms: th.Tensor) -> float:
-        """``optimizer.step()`` unless ``loss`` or a gradient norm is non-finite (:func:`step_if_finite`).
-
-        :param loss: the back-propagated 0-d loss
-        :param optimizer: the optimiser to step
-        :param grad_norms: the clipped groups' total gradient norms
-        :return: the metric ``nonfinite/<optimiser>``: 1.0 if the step was skipped, else 0.0
-        """
-        return 0.0 if step_if_finite(optimizer, loss, *grad_norms) else 1.0
-
     def train_step(self, samples: Any) -> dict[str, float]:
         """One training iteration of this level on a batch of chunks (Algorithm 2, thesis 4.6.2).
 
@@ -652,7 +737,6 @@ class Subactor(nn.Module):
         :return: metrics
         """
         batch, subgoals = self._check_samples(samples)
-        ac_cfg = self.config.actor_critic
         tensors: dict[str, th.Tensor] = {}
 
         # (1) world model
@@ -692,57 +776,14 @@ class Subactor(nn.Module):
                     rewards["novelty"] = novelty_reward(traj.deter, self.autoencoder)
         continues = th.cat([first_cont.unsqueeze(0), cont_pred[1:].detach()], 0)  # (H+1, N)
 
-        # (4) actor and critics
-        retnorm_state = {k: v.clone() for k, v in self.actor_critic.normalizers.state_dict().items()}
-        actor_loss, critic_loss, ac_metrics = self.actor_critic.loss(feats, actions, rewards, continues)
-        actor_params = list(self.actor_critic.actor_parameters())
-        self.actor_optimizer.zero_grad(set_to_none=True)
-        actor_loss.backward(inputs=actor_params)  # never accumulates into world model / autoencoder / critics
-        tensors["actor/grad_norm"] = nn.utils.clip_grad_norm_(actor_params, ac_cfg.grad_clip)
-        metrics["nonfinite/actor"] = self._guarded_step(actor_loss, self.actor_optimizer, tensors["actor/grad_norm"])
-        critic_params = list(self.actor_critic.critic_parameters())
-        self.critic_optimizer.zero_grad(set_to_none=True)
-        critic_loss.backward(inputs=critic_params)
-        for name, critic in self.actor_critic.critics.items():
-            tensors[f"critic/{name}_grad_norm"] = nn.utils.clip_grad_norm_(critic.net.parameters(), ac_cfg.grad_clip)
-        norms = [tensors[f"critic/{name}_grad_norm"] for name in self.actor_critic.critics]
-        metrics["nonfinite/critic"] = self._guarded_step(critic_loss, self.critic_optimizer, *norms)
-        if metrics["nonfinite/actor"] or metrics["nonfinite/critic"]:  # keep the return statistics finite too
-            self.actor_critic.normalizers.load_state_dict(retnorm_state)
-        if not metrics["nonfinite/critic"]:
-            self.actor_critic.update_slow_critics()
-
-        # (5) subgoal autoencoder on the sampled (s_0) and imagined (s_1..s_H) states
-        h_all = traj.deter.detach().reshape(-1, self.h_dim)
-        ae_loss, ae_metrics = self.autoencoder.loss(h_all)
-        self.ae_optimizer.zero_grad(set_to_none=True)
-        ae_loss.backward(inputs=list(self.autoencoder.parameters()))
-        tensors["ae/grad_norm"] = nn.utils.clip_grad_norm_(self.autoencoder.parameters(), self.config.subgoal.grad_clip)
-        metrics["nonfinite/autoencoder"] = self._guarded_step(ae_loss, self.ae_optimizer, tensors["ae/grad_norm"])
-
-        # metrics
-        tensors["actor/loss"] = ac_metrics["actor_loss"]
-        tensors["actor/entropy"] = ac_metrics["actor_entropy"]
-        tensors["actor/advantage_mean"] = ac_metrics["advantage_mean"]
-        tensors["actor/advantage_std"] = ac_metrics["advantage_std"]
-        tensors["critic/loss"] = ac_metrics["critic_loss"]
-        for name in self.reward_terms:
-            tensors[f"critic/{name}_loss"] = ac_metrics[f"{name}/critic_loss"]
-            tensors[f"critic/{name}_value"] = ac_metrics[f"{name}/value_mean"]
-            tensors[f"return/{name}"] = ac_metrics[f"{name}/return_mean"]
-            tensors[f"return/{name}_scale"] = ac_metrics[f"{name}/return_scale"]
-        for name, r in rewards.items():
-            tensors[f"reward/{name}"] = r[1:].detach().mean()
+        # (4) actor and critics, (5) subgoal autoencoder on the sampled (s_0) and imagined (s_1..s_H) states
+        tensors.update(learn_from_imagination(self, feats, actions, rewards, continues, traj.deter))
         if "subgoal" in rewards:
             final = rewards["subgoal"][-1].detach()  # (N,)
             tensors["subgoal/final_reward"] = final.mean()
             tensors["subgoal/success"] = (final >= SUBGOAL_SUCCESS_THRESHOLD).float().mean()
         tensors["imag/continue"] = cont_pred[1:].detach().mean()
-        for key, value in ae_metrics.items():
-            tensors["ae/" + key.split("/", 1)[1]] = value
-        names = list(tensors)
-        values = th.stack([tensors[k].detach().float().reshape(()) for k in names]).cpu().tolist()
-        metrics.update(zip(names, values, strict=True))
+        metrics.update(metric_floats(tensors))
         return metrics
 
     # ------------------------------------------------------------------------------------------------ bookkeeping
