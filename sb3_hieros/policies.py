@@ -748,6 +748,31 @@ class HierosPolicy(BasePolicy):
         new_state = HierarchyState(state.step + 1, (latent,), tuple(actions), histories)
         return new_state, HierarchyStep(masks, prev_actions)
 
+    @property
+    def device(self) -> th.device:
+        """The device of the parameters, cached (SB3 walks the modules on every access; :meth:`_apply`, which ``to``,
+        ``cpu`` and ``cuda`` go through, clears the cache)."""
+        cached = self.__dict__.get("_cached_device")
+        if cached is None:
+            cached = super().device
+            self.__dict__["_cached_device"] = cached
+        return cached
+
+    def _apply(self, fn: Any, recurse: bool = True) -> HierosPolicy:
+        self.__dict__.pop("_cached_device", None)
+        return super()._apply(fn, recurse)
+
+    def set_training_mode(self, mode: bool) -> None:
+        """SB3's train/eval switch, skipped when every module is already in ``mode``.
+
+        SB3 calls it on every ``predict``; reading the flags of the hierarchy's modules is several times cheaper than
+        setting them all again.
+
+        :param mode: True for training mode, False for evaluation mode
+        """
+        if any(module.training != bool(mode) for module in self.modules()):
+            self.train(mode)
+
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         """Actions from a fresh hierarchy state (each observation taken as an episode start).
 

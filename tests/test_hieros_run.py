@@ -255,3 +255,21 @@ def test_vec_normalize_and_continued_learning():
     assert int(model._hier.step[0]) == steps + 10  # the hierarchy carries on (no reset between learn calls)
     model.learn(20)
     assert int(model._hier.step[0]) == 10  # reset_num_timesteps resets the envs and the hierarchy
+
+
+def test_training_mode_and_device_shortcuts():
+    """predict skips the module walk when the mode is already right; the cached device follows ``to``/``cpu``."""
+    model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs())
+    policy = model.policy
+    policy.set_training_mode(True)
+    assert all(m.training for m in policy.modules())
+    policy.subactor(0).world_model.train(False)  # a child out of step: the next switch still reaches every module
+    policy.set_training_mode(True)
+    assert all(m.training for m in policy.modules())
+    model.predict(np.zeros(4, np.float32))
+    assert not any(m.training for m in policy.modules())
+    assert policy.device == next(policy.parameters()).device
+    assert "_cached_device" in policy.__dict__
+    policy.cpu()
+    assert "_cached_device" not in policy.__dict__
+    assert policy.device == th.device("cpu")
