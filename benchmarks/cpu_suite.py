@@ -18,7 +18,9 @@ Baseline hyperparameters are read from rl_zoo3's installed ``hyperparams/<algo>.
 ``lin_<x>`` schedules included, schedules and exploration decay running over the ``--steps`` budget. The zoo has no
 dm_control entries, so the DMC tasks use the zoo's ``Pendulum-v1`` entry of the same algorithm (the other
 one-dimensional continuous-control task here), with ``CnnPolicy`` on pixels and SAC's replay capped at the budget.
-HIEROS uses ``preset="small"`` plus ``--hieros-kwargs``.
+HIEROS uses ``preset="small"`` plus ``--hieros-kwargs``. SB3's PPO trains whole rollouts (``n_steps * n_envs``: 256 on
+CartPole, 4096 with the Pendulum entry), so below that budget it trains more steps than the others; the table then
+names the steps it trained.
 
 Outputs in ``--out``: ``results.json`` (every run), ``table.md`` (final return mean +- std over seeds, side by side,
 and wall time per run) and ``cpu_suite.png`` (evaluation return against agent steps, one panel per task). The
@@ -162,7 +164,8 @@ def run_suite_run(run: SuiteRun) -> dict[str, Any]:
     """Train and evaluate one run.
 
     :param run: what to run
-    :return: ``{**run fields, "eval_steps": [...], "eval_returns": [...], "final_mean", "final_std", "wall_s"}``
+    :return: ``{**run fields, "eval_steps": [...], "eval_returns": [...], "trained_steps", "final_mean", "final_std",
+        "wall_s"}``
     """
     import torch as th
     from stable_baselines3 import DQN, PPO, SAC
@@ -213,6 +216,7 @@ def run_suite_run(run: SuiteRun) -> dict[str, Any]:
         **asdict(run),
         "eval_steps": [t for t, _ in evaluations],
         "eval_returns": [m for _, m in evaluations],
+        "trained_steps": int(model.num_timesteps),
         "final_mean": float(np.mean(returns)),
         "final_std": float(np.std(returns)),
         "wall_s": round(wall, 1),
@@ -259,7 +263,8 @@ def suite_runs(
 
 
 def table(records: Sequence[dict[str, Any]]) -> str:
-    """Markdown table: one row per task, per algorithm the final return (mean +- std over seeds) and wall time.
+    """Markdown table: one row per task, per algorithm the final return (mean +- std over seeds) and wall time, and
+    the steps actually trained where they exceed the budget (PPO trains whole rollouts of ``n_steps * n_envs``).
 
     :param records: results of :func:`run_suite_run`
     :return: the table
@@ -278,7 +283,9 @@ def table(records: Sequence[dict[str, Any]]) -> str:
                 continue
             finals = np.array([r["final_mean"] for r in runs])
             wall = np.mean([r["wall_s"] for r in runs])
-            cells.append(f"{finals.mean():.1f} +- {finals.std():.1f} ({len(runs)} seeds, {wall:.0f} s/run)")
+            trained = max(r["trained_steps"] for r in runs)
+            extra = f", {trained:,} steps" if trained != runs[0]["steps"] else ""
+            cells.append(f"{finals.mean():.1f} +- {finals.std():.1f} ({len(runs)} seeds, {wall:.0f} s/run{extra})")
         steps = max(r["steps"] for r in records if r["task"] == task)
         lines.append(f"| {task} | {steps:,} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

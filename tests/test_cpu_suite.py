@@ -47,7 +47,7 @@ def test_tiny_cartpole_suite(tmp_path):
     assert [r["algo"] for r in records] == ["hieros", "ppo", "dqn"]
     for record in records:
         assert record["eval_steps"][0] >= 128 and record["eval_steps"][-1] >= 256 and len(record["eval_returns"]) == 2
-        assert record["final_mean"] == record["eval_returns"][-1] > 0
+        assert record["final_mean"] == record["eval_returns"][-1] > 0 and record["trained_steps"] == 256
     markdown = (tmp_path / "table.md").read_text()
     assert markdown.startswith("| Task | Steps | HIEROS small | PPO | DQN |") and "| CartPole-v1 | 256 |" in markdown
     assert (tmp_path / "cpu_suite.png").is_file()
