@@ -9,6 +9,10 @@
   observations replaced by the 64x64 RGB render (gymnasium's ``AddRenderObservation``), action repeat 2 (rewards
   summed). Budget: 1M environment steps (500k agent steps).
 * ``"dmc_proprio"``: the same tasks with the state vectors flattened into one float32 vector.
+* ``"classic"``: gymnasium's classic-control tasks (:data:`CLASSIC_TASKS`, any registered id is accepted) as
+  ``gym.make`` gives them: cheap CPU checks of the benchmark scripts, ``MlpPolicy``.
+
+The thesis' reference tables are copied into ``benchmarks/data`` (:data:`DATA_DIR`, see its README).
 
 Every maker returns a plain ``gymnasium.Env`` (no ``Monitor``: SB3 adds one), already reset once with ``seed`` so
 that later unseeded resets continue a seeded stream, with its action space seeded too.
@@ -21,12 +25,16 @@ imports when shimmy loads). Rendering without a display needs an offscreen OpenG
 from __future__ import annotations
 
 import os
+import pathlib
 from dataclasses import dataclass
 from typing import Any, SupportsFloat
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+
+#: Folder of the thesis' reference tables (``thesis_table_5_1_atari100k.csv``, ``thesis_table_5_2_dmc_vision.csv``).
+DATA_DIR = pathlib.Path(__file__).resolve().parent / "data"
 
 #: The 26 games of the Atari100k benchmark (ALE v5 names, ``ALE/<game>-v5``).
 ATARI100K_GAMES: tuple[str, ...] = (
@@ -58,7 +66,7 @@ ATARI100K_GAMES: tuple[str, ...] = (
     "UpNDown",
 )
 
-#: Game name -> its row label in thesis Table 5.1 (``shared/data/thesis_table_5_1_atari100k.csv``). The thesis
+#: Game name -> its row label in thesis Table 5.1 (``benchmarks/data/thesis_table_5_1_atari100k.csv``). The thesis
 #: reports 25 games: every Atari100k game except UpNDown.
 ATARI100K_THESIS_LABELS: dict[str, str] = {
     game: {
@@ -95,13 +103,22 @@ DMC_VISION_TASKS: tuple[str, ...] = (
     "walker-walk",
 )
 
-#: Task -> its row label in thesis Table 5.2 (``shared/data/thesis_table_5_2_dmc_vision.csv``).
+#: Task -> its row label in thesis Table 5.2 (``benchmarks/data/thesis_table_5_2_dmc_vision.csv``).
 DMC_VISION_THESIS_LABELS: dict[str, str] = {
     task: "Cup Catch"
     if task == "ball_in_cup-catch"
     else " ".join(word.capitalize() for word in task.replace("-", "_").split("_"))
     for task in DMC_VISION_TASKS
 }
+
+#: Classic-control tasks of the ``"classic"`` suite (gymnasium ids; the suite accepts any registered id).
+CLASSIC_TASKS: tuple[str, ...] = (
+    "CartPole-v1",
+    "Pendulum-v1",
+    "Acrobot-v1",
+    "MountainCar-v0",
+    "MountainCarContinuous-v0",
+)
 
 #: Camera of the pixel observations: the quadruped tasks use camera 2 (as DreamerV3 does), all others camera 0.
 DMC_CAMERAS: dict[str, int] = {"quadruped": 2}
@@ -129,6 +146,15 @@ SUITES: dict[str, SuiteSpec] = {
     "atari100k": SuiteSpec("atari100k", ATARI100K_GAMES, 4, 100_000, 400_000),
     "dmc_vision": SuiteSpec("dmc_vision", DMC_VISION_TASKS, 2, 500_000, 1_000_000),
     "dmc_proprio": SuiteSpec("dmc_proprio", DMC_VISION_TASKS, 2, 250_000, 500_000),
+    "classic": SuiteSpec("classic", CLASSIC_TASKS, 1, 50_000, 50_000),
+}
+
+#: SB3 policy name of each suite's observations.
+SUITE_POLICIES: dict[str, str] = {
+    "atari100k": "CnnPolicy",
+    "dmc_vision": "CnnPolicy",
+    "dmc_proprio": "MlpPolicy",
+    "classic": "MlpPolicy",
 }
 
 
@@ -206,6 +232,23 @@ def _check_size(size: int) -> None:
         raise ValueError(f"size must be a positive int (pixels per side), got {size!r}")
 
 
+def atari100k_wrapper(env: gym.Env, noop_max: int = 30, size: int = 64) -> gym.Env:
+    """The wrappers :func:`make_atari_env` puts around an ALE env: random no-op resets and RGB resize.
+
+    For ``env_wrapper`` in rl-zoo hyperparameter files, where the zoo makes the ALE env itself (then give it
+    ``frameskip=4``, ``repeat_action_probability=0.0`` and ``max_num_frames_per_episode=108000`` as ``env_kwargs``).
+
+    :param env: an ALE v5 env with RGB observations
+    :param noop_max: at most this many random no-ops after each reset (0: none)
+    :param size: side of the square RGB observation
+    :return: the wrapped env
+    """
+    _check_size(size)
+    if noop_max:
+        env = RandomNoopReset(env, noop_max)
+    return gym.wrappers.ResizeObservation(env, (size, size))  # cv2 INTER_AREA
+
+
 def make_atari_env(
     game: str,
     seed: int = 0,
@@ -243,10 +286,7 @@ def make_atari_env(
         full_action_space=full_action_space,
         max_num_frames_per_episode=108_000,
     )
-    if noop_max:
-        env = RandomNoopReset(env, noop_max)
-    env = gym.wrappers.ResizeObservation(env, (size, size))  # cv2 INTER_AREA
-    return _seeded(env, seed)
+    return _seeded(atari100k_wrapper(env, noop_max=noop_max, size=size), seed)
 
 
 def _dmc_domain_task(task: str) -> tuple[str, str]:
@@ -313,16 +353,20 @@ def make_env(suite: str, task: str, seed: int = 0, **kwargs: Any) -> gym.Env:
     """The environment of one task of a named suite.
 
     ``"atari100k"`` and ``"dmc_vision"`` accept only their own tasks (:data:`ATARI100K_GAMES`,
-    :data:`DMC_VISION_TASKS`); ``"dmc_proprio"`` accepts any dm_control suite task.
+    :data:`DMC_VISION_TASKS`); ``"dmc_proprio"`` accepts any dm_control suite task, ``"classic"`` any gymnasium id.
 
-    :param suite: ``"atari100k"``, ``"dmc_vision"`` or ``"dmc_proprio"``
-    :param task: game or ``"<domain>-<task>"``
+    :param suite: ``"atari100k"``, ``"dmc_vision"``, ``"dmc_proprio"`` or ``"classic"``
+    :param task: game, ``"<domain>-<task>"`` or gymnasium id
     :param seed: seed of the first reset and of the action space
     :param kwargs: further keywords of :func:`make_atari_env` or :func:`make_dmc_env`
     :return: the environment
     """
     if suite not in SUITES:
         raise ValueError(f"unknown suite {suite!r}; expected one of {sorted(SUITES)}")
+    if suite == "classic":
+        if not isinstance(task, str) or task not in gym.registry:
+            raise ValueError(f"unknown classic task {task!r}: not a registered gymnasium id, e.g. {CLASSIC_TASKS}")
+        return _seeded(gym.make(task, **kwargs), seed)
     if suite != "dmc_proprio" and task not in SUITES[suite].tasks:
         raise ValueError(f"unknown {suite} task {task!r}; expected one of {SUITES[suite].tasks}")
     if suite == "atari100k":

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import os
-import pathlib
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # before anything imports dm_control: offscreen rendering
 
@@ -15,6 +14,7 @@ import pytest
 from benchmarks.suites import (
     ATARI100K_GAMES,
     ATARI100K_THESIS_LABELS,
+    DATA_DIR,
     DMC_VISION_TASKS,
     DMC_VISION_THESIS_LABELS,
     SUITES,
@@ -24,17 +24,11 @@ from benchmarks.suites import (
     make_env,
 )
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-
 
 def _thesis_table(name: str) -> list[str]:
-    """Row labels of a thesis table CSV in shared/data beside the repository (skip when absent)."""
-    for base in (ROOT.parent, ROOT.parent.parent):
-        path = base / "shared" / "data" / name
-        if path.exists():
-            with open(path) as f:
-                return [row["task"] for row in csv.DictReader(f)]
-    pytest.skip(f"shared/data/{name} not found beside the repository")
+    """Row labels of a thesis table CSV in benchmarks/data."""
+    with open(DATA_DIR / name) as f:
+        return [row["task"] for row in csv.DictReader(f)]
 
 
 def _needs_ale() -> None:
@@ -135,6 +129,8 @@ def test_unknown_names_refused():
         make_env("procgen", "Pong")
     with pytest.raises(ValueError, match="atari100k task"):
         make_env("atari100k", "Tetris")
+    with pytest.raises(ValueError, match="unknown classic task"):
+        make_env("classic", "CartPole-v99")
     with pytest.raises(ValueError, match="dmc_vision task"):
         make_env("dmc_vision", "cartpole-two_poles")
     with pytest.raises(ValueError, match="repeat"):
@@ -150,3 +146,11 @@ def test_unknown_names_refused():
             make_dmc_env(task, pixels=False)
     with pytest.raises(ValueError, match="fixes pixels"):
         make_env("dmc_proprio", "cartpole-balance", pixels=True)
+
+
+def test_classic_suite():
+    assert SUITES["classic"].action_repeat == 1 and "CartPole-v1" in SUITES["classic"].tasks
+    starts = [make_env("classic", "Pendulum-v1", seed=seed).reset()[0] for seed in (2, 2, 3)]
+    np.testing.assert_array_equal(starts[0], starts[1])  # seeded streams
+    assert not np.array_equal(starts[0], starts[2])
+    assert make_env("classic", "CartPole-v1").observation_space.shape == (4,)

@@ -1,0 +1,373 @@
+"""What a CPU can show: HIEROS (small preset) against SB3's PPO, DQN and SAC with rl-zoo hyperparameters.
+
+Every (task, algorithm, seed) run trains ``--steps`` agent steps (the same for every algorithm; on DMC each agent
+step is 2 control steps, the same for all), is evaluated ``--n-evals`` times, evenly spaced, the last at the end
+(``--eval-episodes`` episodes on a separate env seeded ``seed + 10000``, deterministic policy). Tasks:
+
+============================  ===============================================  ===================
+task                          environment                                       algorithms
+============================  ===============================================  ===================
+``CartPole-v1``               gymnasium                                         hieros, ppo, dqn
+``Pendulum-v1``               gymnasium                                         hieros, ppo, sac
+``cartpole-balance-proprio``  ``suites.make_env("dmc_proprio", ...)``           hieros, ppo, sac
+``cartpole-balance-pixels``   ``suites.make_env("dmc_vision", ...)``, 64x64      hieros, ppo, sac
+============================  ===============================================  ===================
+
+Baseline hyperparameters are read from rl_zoo3's installed ``hyperparams/<algo>.yml`` (the ``zoo`` extra), as
+``python -m rl_zoo3.train --algo <algo> --env <id> -n <steps>`` would use them: ``n_envs``, ``policy_kwargs`` and
+``lin_<x>`` schedules included, schedules and exploration decay running over the ``--steps`` budget. The zoo has no
+dm_control entries, so the DMC tasks use the zoo's ``Pendulum-v1`` entry of the same algorithm (the other
+one-dimensional continuous-control task here), with ``CnnPolicy`` on pixels and SAC's replay capped at the budget.
+HIEROS uses ``preset="small"`` plus ``--hieros-kwargs``. SB3's PPO trains whole rollouts (``n_steps * n_envs``: 256 on
+CartPole, 4096 with the Pendulum entry), so below that budget it trains more steps than the others; the table then
+names the steps it trained.
+
+Outputs in ``--out``: ``results.json`` (every run), ``table.md`` (final return mean +- std over seeds, side by side,
+and wall time per run) and ``cpu_suite.png`` (evaluation return against agent steps, one panel per task). The
+script ends by printing the table.
+
+Example (the issue's benchmark; long, run it on an idle machine)::
+
+    python -m benchmarks.cpu_suite --seeds 3 --steps 20000 --workers 2 --out cpu_suite
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+__all__ = ["ALGOS", "TASKS", "SuiteRun", "TaskSpec", "run_suite_run", "suite_runs", "table", "zoo_hyperparams"]
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """One task of the CPU suite.
+
+    :param suite: suite of :func:`benchmarks.suites.make_env`
+    :param task: task of that suite
+    :param zoo_key: the rl-zoo hyperparameter entry the baselines use
+    :param algos: algorithms run on it
+    """
+
+    suite: str
+    task: str
+    zoo_key: str
+    algos: tuple[str, ...]
+
+
+TASKS: dict[str, TaskSpec] = {
+    "CartPole-v1": TaskSpec("classic", "CartPole-v1", "CartPole-v1", ("hieros", "ppo", "dqn")),
+    "Pendulum-v1": TaskSpec("classic", "Pendulum-v1", "Pendulum-v1", ("hieros", "ppo", "sac")),
+    "cartpole-balance-proprio": TaskSpec("dmc_proprio", "cartpole-balance", "Pendulum-v1", ("hieros", "ppo", "sac")),
+    "cartpole-balance-pixels": TaskSpec("dmc_vision", "cartpole-balance", "Pendulum-v1", ("hieros", "ppo", "sac")),
+}
+ALGOS = ("hieros", "ppo", "dqn", "sac")
+EVAL_SEED_OFFSET = 10_000
+
+
+@dataclass(frozen=True)
+class SuiteRun:
+    """One (task, algorithm, seed) run.
+
+    :param task: a key of :data:`TASKS`
+    :param algo: one of :data:`ALGOS`
+    :param seed: seed of the model and the training env
+    :param steps: agent steps to train
+    :param eval_episodes: episodes per evaluation
+    :param n_evals: evaluations, evenly spaced, the last one (``eval_episodes`` episodes) at the end
+    :param hieros_kwargs: HIEROS keywords on top of ``preset="small"``
+    """
+
+    task: str
+    algo: str
+    seed: int
+    steps: int
+    eval_episodes: int = 10
+    n_evals: int = 5
+    hieros_kwargs: dict[str, Any] = field(default_factory=dict)
+
+
+def _linear(initial: float) -> Any:
+    def schedule(progress_remaining: float) -> float:
+        return progress_remaining * initial
+
+    return schedule
+
+
+def zoo_hyperparams(algo: str, key: str) -> tuple[int, dict[str, Any]]:
+    """An entry of rl_zoo3's installed ``hyperparams/<algo>.yml`` as constructor keywords.
+
+    Converted as rl_zoo3 does: ``lin_<x>`` strings become linear schedules, a ``policy_kwargs`` string is evaluated,
+    ``n_timesteps`` is dropped (the budget is ``--steps``) and ``policy`` is left to the caller.
+
+    :param algo: ``"ppo"``, ``"dqn"`` or ``"sac"``
+    :param key: the entry, e.g. ``"CartPole-v1"``
+    :return: ``(n_envs, keywords)``
+    """
+    try:
+        import rl_zoo3
+    except ImportError as error:
+        raise ImportError(f"the baselines' hyperparameters need the 'zoo' extra (rl_zoo3): {error}") from error
+    import torch.nn as nn
+    import yaml
+
+    path = pathlib.Path(rl_zoo3.__file__).parent / "hyperparams" / f"{algo}.yml"
+    if not path.is_file():
+        raise ValueError(f"rl_zoo3 has no hyperparameter file for algo {algo!r} ({path})")
+    entries = yaml.safe_load(path.read_text())
+    if key not in entries:
+        raise ValueError(f"rl_zoo3's {algo}.yml has no entry {key!r}")
+    entry = dict(entries[key])
+    unsupported = {"normalize", "frame_stack", "env_wrapper", "callback", "vec_env_wrapper"} & set(entry)
+    if unsupported:
+        raise ValueError(f"zoo entry {algo}/{key} uses {sorted(unsupported)}, which cpu_suite does not apply")
+    n_envs = int(entry.pop("n_envs", 1))
+    entry.pop("n_timesteps", None)
+    entry.pop("policy", None)
+    for name, value in entry.items():
+        if isinstance(value, str) and value.startswith("lin_"):
+            entry[name] = _linear(float(value[len("lin_") :]))
+    if isinstance(entry.get("policy_kwargs"), str):
+        entry["policy_kwargs"] = eval(entry["policy_kwargs"], {"dict": dict, "nn": nn})  # as rl_zoo3 does
+    if isinstance(entry.get("train_freq"), list):
+        entry["train_freq"] = tuple(entry["train_freq"])
+    return n_envs, entry
+
+
+def _vec_env(spec: TaskSpec, n_envs: int, seed: int) -> Any:
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecTransposeImage
+
+    from benchmarks.suites import make_env
+
+    def maker(rank: int) -> Any:
+        return lambda: Monitor(make_env(spec.suite, spec.task, seed=seed + rank))
+
+    venv: Any = DummyVecEnv([maker(rank) for rank in range(n_envs)])
+    if is_image_space(venv.observation_space) and not is_image_space_channels_first(venv.observation_space):
+        venv = VecTransposeImage(venv)
+    return venv
+
+
+def run_suite_run(run: SuiteRun) -> dict[str, Any]:
+    """Train and evaluate one run.
+
+    :param run: what to run
+    :return: ``{**run fields, "eval_steps": [...], "eval_returns": [...], "trained_steps", "final_mean", "final_std",
+        "wall_s"}``
+    """
+    import torch as th
+    from stable_baselines3 import DQN, PPO, SAC
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.evaluation import evaluate_policy
+
+    from benchmarks.suites import SUITE_POLICIES
+    from sb3_hieros import HIEROS
+
+    if run.task not in TASKS:
+        raise ValueError(f"unknown task {run.task!r}; expected one of {sorted(TASKS)}")
+    spec = TASKS[run.task]
+    if run.algo not in spec.algos:
+        raise ValueError(f"algo {run.algo!r} is not run on {run.task!r}; expected one of {spec.algos}")
+    th.set_num_threads(1)
+    policy = SUITE_POLICIES[spec.suite]
+    if run.algo == "hieros":
+        n_envs, kwargs = 1, {"preset": "small", **run.hieros_kwargs}
+    else:
+        n_envs, kwargs = zoo_hyperparams(run.algo, spec.zoo_key)
+        if run.algo == "sac":
+            kwargs["buffer_size"] = min(int(kwargs.get("buffer_size", 1_000_000)), run.steps)
+    env = _vec_env(spec, n_envs, run.seed)
+    eval_env = _vec_env(spec, 1, run.seed + EVAL_SEED_OFFSET)
+    algo_class: Any = {"hieros": HIEROS, "ppo": PPO, "dqn": DQN, "sac": SAC}[run.algo]
+    start = time.perf_counter()
+    model = algo_class(policy, env, seed=run.seed, **kwargs)
+    milestones = [run.steps * i // run.n_evals for i in range(1, run.n_evals)]
+    evaluations: list[tuple[int, float]] = []
+
+    class EvaluateAtMilestones(BaseCallback):
+        def _on_step(self) -> bool:
+            while milestones and self.num_timesteps >= milestones[0]:
+                milestones.pop(0)
+                mean, _ = evaluate_policy(model, eval_env, n_eval_episodes=run.eval_episodes, deterministic=True)
+                evaluations.append((int(self.num_timesteps), float(mean)))
+            return True
+
+    model.learn(run.steps, callback=EvaluateAtMilestones())
+    returns, _ = evaluate_policy(
+        model, eval_env, n_eval_episodes=run.eval_episodes, deterministic=True, return_episode_rewards=True
+    )
+    evaluations.append((int(model.num_timesteps), float(np.mean(returns))))
+    wall = time.perf_counter() - start
+    env.close()
+    eval_env.close()
+    return {
+        **asdict(run),
+        "eval_steps": [t for t, _ in evaluations],
+        "eval_returns": [m for _, m in evaluations],
+        "trained_steps": int(model.num_timesteps),
+        "final_mean": float(np.mean(returns)),
+        "final_std": float(np.std(returns)),
+        "wall_s": round(wall, 1),
+    }
+
+
+def suite_runs(
+    tasks: Sequence[str],
+    algos: Sequence[str],
+    seeds: Sequence[int],
+    steps: int,
+    eval_episodes: int = 10,
+    n_evals: int = 5,
+    hieros_kwargs: dict[str, Any] | None = None,
+) -> list[SuiteRun]:
+    """Every (task, algorithm, seed) combination, skipping algorithms a task does not run (e.g. DQN on Pendulum).
+
+    :param tasks: keys of :data:`TASKS`
+    :param algos: algorithms of :data:`ALGOS`
+    :param seeds: seeds
+    :param steps: agent steps per run (>= 1)
+    :param eval_episodes: episodes per evaluation
+    :param n_evals: evaluations per run, the last at the end
+    :param hieros_kwargs: HIEROS keywords
+    :return: the runs, task-major, then algorithm, then seed
+    """
+    for task in tasks:
+        if task not in TASKS:
+            raise ValueError(f"unknown task {task!r}; expected some of {sorted(TASKS)}")
+    for algo in algos:
+        if algo not in ALGOS:
+            raise ValueError(f"unknown algo {algo!r}; expected some of {ALGOS}")
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps must be an int >= 1, got {steps!r}")
+    if isinstance(n_evals, bool) or not isinstance(n_evals, int) or n_evals < 1:
+        raise ValueError(f"n_evals must be an int >= 1, got {n_evals!r}")
+    return [
+        SuiteRun(task, algo, seed, steps, eval_episodes, n_evals, dict(hieros_kwargs or {}))
+        for task in tasks
+        for algo in TASKS[task].algos
+        if algo in algos
+        for seed in seeds
+    ]
+
+
+def table(records: Sequence[dict[str, Any]]) -> str:
+    """Markdown table: one row per task, per algorithm the final return (mean +- std over seeds) and wall time, and
+    the steps actually trained where they exceed the budget (PPO trains whole rollouts of ``n_steps * n_envs``).
+
+    :param records: results of :func:`run_suite_run`
+    :return: the table
+    """
+    algos = [a for a in ALGOS if any(r["algo"] == a for r in records)]
+    lines = [
+        "| Task | Steps | " + " | ".join(f"{a.upper() if a != 'hieros' else 'HIEROS small'}" for a in algos) + " |",
+        "|---|---:|" + "---:|" * len(algos),
+    ]
+    for task in dict.fromkeys(r["task"] for r in records):
+        cells = []
+        for algo in algos:
+            runs = [r for r in records if r["task"] == task and r["algo"] == algo]
+            if not runs:
+                cells.append("")
+                continue
+            finals = np.array([r["final_mean"] for r in runs])
+            wall = np.mean([r["wall_s"] for r in runs])
+            trained = max(r["trained_steps"] for r in runs)
+            extra = f", {trained:,} steps" if trained != runs[0]["steps"] else ""
+            cells.append(f"{finals.mean():.1f} +- {finals.std():.1f} ({len(runs)} seeds, {wall:.0f} s/run{extra})")
+        steps = max(r["steps"] for r in records if r["task"] == task)
+        lines.append(f"| {task} | {steps:,} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot(records: Sequence[dict[str, Any]], path: str | pathlib.Path) -> None:
+    """Evaluation return against agent steps, one panel per task, mean over seeds per algorithm (min-max shaded).
+
+    :param records: results of :func:`run_suite_run`
+    :param path: PNG file
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tasks = list(dict.fromkeys(r["task"] for r in records))
+    colors = {"hieros": "tab:red", "ppo": "tab:blue", "dqn": "tab:green", "sac": "tab:purple"}
+    fig, axes = plt.subplots(1, len(tasks), figsize=(4 * len(tasks), 3.2), squeeze=False)
+    for ax, task in zip(axes[0], tasks, strict=True):
+        for algo in ALGOS:
+            runs = [r for r in records if r["task"] == task and r["algo"] == algo]
+            if not runs:
+                continue
+            length = min(len(r["eval_returns"]) for r in runs)
+            curves = np.array([r["eval_returns"][:length] for r in runs])
+            x = runs[0]["eval_steps"][:length]
+            ax.plot(x, curves.mean(0), color=colors[algo], label=algo, marker=".")
+            ax.fill_between(x, curves.min(0), curves.max(0), color=colors[algo], alpha=0.15)
+        ax.set_title(task, fontsize=10)
+        ax.set_xlabel("agent steps")
+    axes[0][0].set_ylabel("evaluation return")
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
+    """Command line (see the module docstring)."""
+    from benchmarks.sweep import execute
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
+    parser.add_argument("--algos", nargs="+", default=list(ALGOS), choices=list(ALGOS))
+    parser.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1")
+    parser.add_argument("--steps", type=int, default=20_000, help="agent steps per run, every algorithm")
+    parser.add_argument("--eval-episodes", type=int, default=10)
+    parser.add_argument(
+        "--n-evals", type=int, default=5, help="evaluations per run, evenly spaced, the last at the end"
+    )
+    parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--hieros-kwargs", default="{}", help="JSON dict of HIEROS keywords")
+    parser.add_argument("--out", default="cpu_suite")
+    args = parser.parse_args(argv)
+    runs = suite_runs(
+        args.tasks,
+        args.algos,
+        range(args.seeds),
+        args.steps,
+        args.eval_episodes,
+        args.n_evals,
+        json.loads(args.hieros_kwargs),
+    )
+
+    def report(record: dict[str, Any]) -> None:
+        print(
+            f"{record['task']} {record['algo']} seed {record['seed']}: final {record['final_mean']:.1f} "
+            f"+- {record['final_std']:.1f}, {record['wall_s']} s",
+            flush=True,
+        )
+
+    records = execute(run_suite_run, runs, workers=args.workers, report=report)
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    markdown = table(records)
+    (out / "results.json").write_text(json.dumps(records, indent=1))
+    (out / "table.md").write_text(markdown + "\n")
+    plot(records, out / "cpu_suite.png")
+    print(markdown)
+    return records
+
+
+if __name__ == "__main__":
+    main()

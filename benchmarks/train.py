@@ -1,0 +1,232 @@
+"""One HIEROS training run on one task of a benchmark suite (:mod:`benchmarks.suites`), with the thesis' protocol.
+
+The run trains ``--steps`` agent steps (default: the suite's budget, e.g. 100k for Atari100k), evaluates every
+``--eval-freq`` steps with SB3's ``EvalCallback`` (``--periodic-eval-episodes`` episodes) and at the end over
+``--eval-episodes`` episodes (100 in the thesis), and writes into ``<out>/<suite>/<task>/seed<seed>/``:
+
+* ``train.monitor.csv`` / ``eval.monitor.csv``: SB3 ``Monitor`` logs of the training and evaluation episodes;
+* ``evaluations.npz``: the periodic evaluations (``EvalCallback``'s ``timesteps``, ``results``, ``ep_lengths``);
+* ``model.zip``: the trained model (``HIEROS.load`` reads it);
+* ``result.json``: suite, task, seed, preset, steps, final mean/std return, the final returns, the periodic
+  evaluation curve, wall time and the keywords of the run (:func:`benchmarks.aggregate.load_results` reads it).
+
+Evaluation uses a separate environment seeded with ``seed + 10000`` and the deterministic policy unless
+``--stochastic-eval``.
+
+Examples::
+
+    python -m benchmarks.train --suite atari100k --task Pong --seed 0 --preset paper --out runs
+    python -m benchmarks.train --suite classic --task CartPole-v1 --preset small --steps 5000 --eval-freq 1000 \\
+        --eval-episodes 10 --out runs --config-overrides '{"n_levels": 1}'
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import time
+from typing import Any
+
+import numpy as np
+
+from benchmarks.suites import SUITE_POLICIES, SUITES, make_env
+
+__all__ = ["EVAL_SEED_OFFSET", "run_dir", "train"]
+
+#: The evaluation env of a run with seed s is seeded with s + EVAL_SEED_OFFSET.
+EVAL_SEED_OFFSET = 10_000
+
+
+def run_dir(out: str | pathlib.Path, suite: str, task: str, seed: int) -> pathlib.Path:
+    """Folder of one run: ``<out>/<suite>/<task with "/" as "_">/seed<seed>``."""
+    return pathlib.Path(out) / suite / task.replace("/", "_") / f"seed{seed}"
+
+
+def _vec_env(suite: str, task: str, seed: int, monitor_file: pathlib.Path, env_kwargs: dict[str, Any]) -> Any:
+    """A one-env ``DummyVecEnv`` with a ``Monitor`` writing ``monitor_file``; image observations channel-first."""
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecTransposeImage
+
+    venv: Any = DummyVecEnv([lambda: Monitor(make_env(suite, task, seed=seed, **env_kwargs), str(monitor_file))])
+    space = venv.observation_space
+    if is_image_space(space) and not is_image_space_channels_first(space):
+        venv = VecTransposeImage(venv)
+    return venv
+
+
+def train(
+    suite: str,
+    task: str,
+    seed: int = 0,
+    preset: str = "paper",
+    steps: int | None = None,
+    eval_freq: int = 10_000,
+    eval_episodes: int = 100,
+    periodic_eval_episodes: int = 10,
+    out: str | pathlib.Path = "runs",
+    threads: int = 1,
+    config_overrides: dict[str, Any] | None = None,
+    hieros_kwargs: dict[str, Any] | None = None,
+    env_kwargs: dict[str, Any] | None = None,
+    deterministic: bool = True,
+    device: str = "auto",
+    verbose: int = 0,
+) -> dict[str, Any]:
+    """Train HIEROS on one task of a suite, evaluate it and write the run's files (see the module docstring).
+
+    :param suite: a suite of :data:`benchmarks.suites.SUITES`
+    :param task: a task of that suite (game, ``"<domain>-<task>"`` or gymnasium id)
+    :param seed: seed of the model and the training env (the evaluation env gets ``seed + EVAL_SEED_OFFSET``)
+    :param preset: HIEROS preset (``"paper"`` or ``"small"``)
+    :param steps: agent steps to train; None = the suite's budget (:attr:`SuiteSpec.agent_steps`)
+    :param eval_freq: periodic evaluation every this many agent steps (<= 0: none)
+    :param eval_episodes: episodes of the final evaluation (>= 1)
+    :param periodic_eval_episodes: episodes of each periodic evaluation (>= 1)
+    :param out: root folder of the runs
+    :param threads: torch threads
+    :param config_overrides: HIEROS ``config_overrides``
+    :param hieros_kwargs: further HIEROS keywords (``learning_starts``, ``train_ratio`` ...)
+    :param env_kwargs: further keywords of :func:`benchmarks.suites.make_env` (e.g. ``{"sticky": True}``)
+    :param deterministic: evaluate with the deterministic policy
+    :param device: torch device
+    :param verbose: HIEROS verbosity
+    :return: the record written to ``result.json``
+    """
+    import torch as th
+    from stable_baselines3.common.callbacks import EvalCallback
+    from stable_baselines3.common.evaluation import evaluate_policy
+
+    from sb3_hieros import HIEROS
+
+    if suite not in SUITES:
+        raise ValueError(f"unknown suite {suite!r}; expected one of {sorted(SUITES)}")
+    steps = SUITES[suite].agent_steps if steps is None else steps
+    for name, value in (("steps", steps), ("eval_episodes", eval_episodes), ("threads", threads)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+    if isinstance(periodic_eval_episodes, bool) or not isinstance(periodic_eval_episodes, int):
+        raise ValueError(f"periodic_eval_episodes must be an int >= 1, got {periodic_eval_episodes!r}")
+    if periodic_eval_episodes < 1:
+        raise ValueError(f"periodic_eval_episodes must be an int >= 1, got {periodic_eval_episodes!r}")
+    hieros_kwargs = dict(hieros_kwargs or {})
+    for reserved in ("preset", "config_overrides", "seed", "env", "policy"):
+        if reserved in hieros_kwargs:
+            raise ValueError(f"hieros_kwargs must not contain {reserved!r} (it has its own argument)")
+    env_kwargs = dict(env_kwargs or {})
+
+    th.set_num_threads(threads)
+    folder = run_dir(out, suite, task, seed)
+    folder.mkdir(parents=True, exist_ok=True)
+    env = _vec_env(suite, task, seed, folder / "train", env_kwargs)
+    eval_env = _vec_env(suite, task, seed + EVAL_SEED_OFFSET, folder / "eval", env_kwargs)
+    start = time.perf_counter()
+    model = HIEROS(
+        SUITE_POLICIES[suite],
+        env,
+        preset=preset,
+        config_overrides=config_overrides,
+        seed=seed,
+        device=device,
+        verbose=verbose,
+        **hieros_kwargs,
+    )
+    callback = None
+    if eval_freq > 0:
+        callback = EvalCallback(
+            eval_env,
+            n_eval_episodes=periodic_eval_episodes,
+            eval_freq=eval_freq,
+            log_path=str(folder),
+            deterministic=deterministic,
+            verbose=0,
+        )
+    model.learn(steps, callback=callback)
+    train_s = time.perf_counter() - start
+    returns, _ = evaluate_policy(
+        model, eval_env, n_eval_episodes=eval_episodes, deterministic=deterministic, return_episode_rewards=True
+    )
+    model.save(folder / "model.zip")
+    record = {
+        "suite": suite,
+        "task": task,
+        "seed": seed,
+        "preset": preset,
+        "steps": int(model.num_timesteps),
+        "env_steps": int(model.num_timesteps) * SUITES[suite].action_repeat,
+        "final_mean": float(np.mean(returns)),
+        "final_std": float(np.std(returns)),
+        "final_episodes": len(returns),
+        "final_returns": [float(r) for r in returns],
+        "eval_timesteps": [int(t) for t in callback.evaluations_timesteps] if callback else [],
+        "eval_means": [float(np.mean(r)) for r in callback.evaluations_results] if callback else [],
+        "deterministic_eval": deterministic,
+        "train_s": round(train_s, 1),
+        "wall_s": round(time.perf_counter() - start, 1),
+        "config_overrides": config_overrides or {},
+        "hieros_kwargs": hieros_kwargs,
+        "env_kwargs": env_kwargs,
+    }
+    (folder / "result.json").write_text(json.dumps(record, indent=1))
+    env.close()
+    eval_env.close()
+    return record
+
+
+def _json_dict(text: str) -> dict[str, Any]:
+    value = json.loads(text)
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"expected a JSON object, got {text!r}")
+    return value
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """Command line (see the module docstring)."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--suite", required=True, choices=sorted(SUITES))
+    parser.add_argument("--task", required=True)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--preset", default="paper", choices=["paper", "small"])
+    parser.add_argument("--steps", type=int, default=None, help="agent steps (default: the suite's budget)")
+    parser.add_argument("--eval-freq", type=int, default=10_000, help="periodic evaluation every N steps (<=0: off)")
+    parser.add_argument("--eval-episodes", type=int, default=100, help="episodes of the final evaluation")
+    parser.add_argument("--periodic-eval-episodes", type=int, default=10)
+    parser.add_argument("--out", default="runs")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--config-overrides", type=_json_dict, default=None, help="JSON dict for config_overrides")
+    parser.add_argument("--hieros-kwargs", type=_json_dict, default=None, help="JSON dict of HIEROS keywords")
+    parser.add_argument("--env-kwargs", type=_json_dict, default=None, help="JSON dict for suites.make_env")
+    parser.add_argument("--stochastic-eval", action="store_true", help="evaluate with sampled actions")
+    parser.add_argument("--device", default="auto")
+    parser.add_argument("--verbose", type=int, default=0)
+    args = parser.parse_args(argv)
+    record = train(
+        args.suite,
+        args.task,
+        seed=args.seed,
+        preset=args.preset,
+        steps=args.steps,
+        eval_freq=args.eval_freq,
+        eval_episodes=args.eval_episodes,
+        periodic_eval_episodes=args.periodic_eval_episodes,
+        out=args.out,
+        threads=args.threads,
+        config_overrides=args.config_overrides,
+        hieros_kwargs=args.hieros_kwargs,
+        env_kwargs=args.env_kwargs,
+        deterministic=not args.stochastic_eval,
+        device=args.device,
+        verbose=args.verbose,
+    )
+    print(
+        f"{record['suite']} {record['task']} seed {record['seed']}: final return {record['final_mean']:.2f} "
+        f"+- {record['final_std']:.2f} over {record['final_episodes']} episodes after {record['steps']} steps, "
+        f"{record['wall_s']} s -> {run_dir(args.out, args.suite, args.task, args.seed)}",
+        flush=True,
+    )
+    return record
+
+
+if __name__ == "__main__":
+    main()
