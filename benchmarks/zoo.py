@@ -21,9 +21,9 @@ Examples::
     python -m benchmarks.zoo enjoy --algo hieros --env CartPole-v1 -f logs/ --no-render -n 500
     python -m benchmarks.zoo optimize --algo hieros --env CartPole-v1 -n 5000 --n-trials 10
 
-Outputs go where rl_zoo3 puts them (``logs/hieros/<env>_<run id>/`` by default). Caveats: rl_zoo3's ``enjoy`` loads
-with a learning rate of 0, which HIEROS refuses, so ``enjoy`` here loads through :class:`EnjoyHIEROS` (which drops
-those overrides and a 1-step replay, as the zoo does for its own off-policy algorithms). The suite ids exist only in
+Outputs go where rl_zoo3 puts them (``logs/hieros/<env>_<run id>/`` by default). Caveats: ``enjoy`` here loads
+through :class:`EnjoyHIEROS`, which allocates a one-chunk replay (as the zoo does for its own off-policy algorithms)
+instead of the full one saved with the model. The suite ids exist only in
 processes that imported this module: with ``--vec-env subproc`` they are unknown in the workers, so keep the default
 ``dummy`` vec env for them.
 """
@@ -102,22 +102,20 @@ def sample_hieros_params(trial: Any, n_actions: int, n_envs: int, additional_arg
 
 
 class EnjoyHIEROS(HIEROS):
-    """:class:`HIEROS` as rl_zoo3's ``enjoy`` needs it: ``load`` ignores the zero learning-rate ``custom_objects``
-    the zoo passes (HIEROS' configuration refuses a learning rate of 0) and allocates a minimal replay (one chunk per
-    env) unless ``buffer_size`` is given (the zoo does the same for its own off-policy algorithms)."""
+    """:class:`HIEROS` as rl_zoo3's ``enjoy`` needs it: ``load`` allocates a minimal replay (one chunk per env) unless
+    ``buffer_size`` is given (the zoo does the same for its own off-policy algorithms)."""
 
     @classmethod
     def load(cls, path: Any, env: Any = None, device: Any = "auto", custom_objects: Any = None, **kwargs: Any) -> Any:  # type: ignore[override]
-        """:meth:`HIEROS.load` without the ``learning_rate`` / ``lr_schedule`` custom objects.
+        """:meth:`HIEROS.load` with a one-chunk replay.
 
         :return: the loaded :class:`HIEROS` model
         """
-        custom = {k: v for k, v in (custom_objects or {}).items() if k not in ("learning_rate", "lr_schedule")}
         if "buffer_size" not in kwargs:
             with zipfile.ZipFile(open_path(path, "r", verbose=0, suffix="zip")) as archive:
                 data = json_to_data(archive.read("data").decode())
             kwargs["buffer_size"] = int(data["batch_length"]) * max(1, int(data.get("n_envs", 1)))  # one chunk
-        return HIEROS.load(path, env=env, device=device, custom_objects=custom, **kwargs)
+        return HIEROS.load(path, env=env, device=device, custom_objects=custom_objects, **kwargs)
 
 
 def register_hieros(enjoy: bool = False) -> None:

@@ -30,6 +30,13 @@ def _check_positive(obj: object, *names: str) -> None:
             raise ValueError(f"{type(obj).__name__}.{name} must be a positive number, got {value!r}")
 
 
+def _check_non_negative(obj: object, *names: str) -> None:
+    for name in names:
+        value = getattr(obj, name)
+        if not isinstance(value, int | float) or isinstance(value, bool) or value < 0:
+            raise ValueError(f"{type(obj).__name__}.{name} must be a number >= 0, got {value!r}")
+
+
 def _check_choice(obj: object, name: str, choices: tuple[str, ...]) -> None:
     value = getattr(obj, name)
     if value not in choices:
@@ -119,10 +126,10 @@ class WorldModelConfig:
             "mlp_layers",
             "head_units",
             "head_layers",
-            "lr",
             "eps",
             "grad_clip",
         )
+        _check_non_negative(self, "lr")  # 0 freezes the world model (rl-zoo's enjoy loads with learning_rate=0)
         _check_fraction(self, "dropout", "unimix")
         if self.s5_state_dim % self.s5_hippo_blocks:
             raise ValueError(

@@ -65,3 +65,9 @@ def test_unknown_preset():
 def test_hieros_config_rejects_bad_replay():
     with pytest.raises(ValueError, match="replay"):
         HierosConfig(replay="prioritized")
+
+
+def test_world_model_lr_zero_is_a_frozen_model_and_negative_is_refused():
+    assert get_preset("small").replace(world_model={"lr": 0.0}).world_model.lr == 0.0
+    with pytest.raises(ValueError, match=r"WorldModelConfig\.lr must be a number >= 0, got -0\.001"):
+        get_preset("small").replace(world_model={"lr": -1e-3})
