@@ -167,6 +167,15 @@ def _ray(address: str) -> Any:
     return ray
 
 
+def _ray_runtime_env() -> dict[str, Any]:
+    """Ray workers start in a fresh interpreter: put this repository (``benchmarks`` is not an installed package) on
+    their ``PYTHONPATH``, so that they can import the task functions. Cluster nodes need the repository at the same
+    path."""
+    root = str(pathlib.Path(__file__).resolve().parent.parent)
+    paths = [root, *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+    return {"env_vars": {"PYTHONPATH": os.pathsep.join(dict.fromkeys(paths))}}
+
+
 def execute(
     fn: Callable[[Job], dict[str, Any]],
     jobs: Sequence[Job],
@@ -190,7 +199,7 @@ def execute(
     results: list[dict[str, Any]] = []
     if ray_address is not None:
         ray = _ray(ray_address)
-        task = ray.remote(num_cpus=1)(fn)
+        task = ray.remote(num_cpus=1, runtime_env=_ray_runtime_env())(fn)
         refs = [task.remote(job) for job in jobs]
         for ref in refs:
             results.append(ray.get(ref))

@@ -37,6 +37,7 @@ def test_grid_runs_and_aggregates(tmp_path):
     assert "| CartPole-v1 |" in markdown and (tmp_path / "agg" / "classic_curves.png").is_file()
 
 
+@pytest.mark.timeout(900)  # starting Ray on a loaded 2-core machine can take minutes
 def test_ray_matches_local():
     ray = pytest.importorskip("ray", reason="the 'ray' extra is not installed")
     runs = [Run("hieros", "CartPole-v1", seed, 120, TINY) for seed in (0, 1)]
