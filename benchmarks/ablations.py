@@ -22,6 +22,8 @@ Examples::
         --steps 100000 --preset paper
     # a small CPU budget on CartPole
     python -m benchmarks.ablations --ablation all --env CartPole-v1 --seeds 2 --steps 10000 --workers 2
+    # table and figures again from a finished run's results.json (no training)
+    python -m benchmarks.ablations --ablation all --from-results results/ablations/results.json
 """
 
 from __future__ import annotations
@@ -117,14 +119,22 @@ def final_return(record: dict[str, Any], steps: int) -> float:
     return float(returns[late].mean() if late.any() else returns[-1])
 
 
-def summarise(records: list[dict[str, Any]], steps: int) -> dict[tuple[str, str], dict[str, float]]:
-    """(task, variant) -> final return mean / std over seeds, mean return, wall seconds per run, seeds."""
+def summarise(records: list[dict[str, Any]], steps: int, bins: int = 20) -> dict[tuple[str, str], dict[str, float]]:
+    """(task, variant) -> final return mean / std over seeds, mean return, wall seconds per run, seeds.
+
+    The mean return is the area under the collected-reward curve divided by the steps: the mean of
+    :func:`binned_curve` over its ``bins`` step intervals (intervals before the first episode end left out), so that
+    it weighs every part of the run alike, however many episodes ended in it.
+    """
     table: dict[tuple[str, str], dict[str, float]] = {}
     keys = dict.fromkeys((r["env_id"], r["variant"]) for r in records)
     for env, variant in keys:
         group = [r for r in records if r["env_id"] == env and r["variant"] == variant]
         finals = [final_return(r, steps) for r in group]
-        means = [float(np.mean(r["episode_returns"])) if r["episode_returns"] else float("nan") for r in group]
+        means = []
+        for r in group:
+            curve = binned_curve(r, steps, bins)
+            means.append(float(np.nanmean(curve)) if np.isfinite(curve).any() else float("nan"))
         table[(env, variant)] = {
             "final_mean": float(np.mean(finals)),
             "final_std": float(np.std(finals)),
@@ -201,7 +211,15 @@ def main(argv: list[str] | None = None) -> dict[tuple[str, str], dict[str, float
     parser.add_argument("--bins", type=int, default=20, help="points of the reward curves")
     parser.add_argument("--hieros-kwargs", default="{}", help="JSON dict of extra HIEROS keywords for every run")
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("results/ablations"))
+    parser.add_argument(
+        "--from-results",
+        type=pathlib.Path,
+        default=None,
+        help="a results.json of an earlier run: tabulate, no training",
+    )
     args = parser.parse_args(argv)
+    if args.from_results is not None:
+        return tabulate_results(args.from_results, args.out, args.bins)
     if args.seeds < 1 or args.steps < 1 or args.bins < 1:
         raise ValueError(f"--seeds, --steps and --bins must be >= 1, got {args.seeds}, {args.steps}, {args.bins}")
     extra = json.loads(args.hieros_kwargs)
@@ -220,15 +238,42 @@ def main(argv: list[str] | None = None) -> dict[tuple[str, str], dict[str, float
     (args.out / "results.json").write_text(
         json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "runs": records}, indent=1) + "\n"
     )
+    return report(records, names, envs, args.steps, args.bins, args.out)
+
+
+def report(
+    records: list[dict[str, Any]], names: list[str], envs: list[str], steps: int, bins: int, out: pathlib.Path
+) -> dict[tuple[str, str], dict[str, float]]:
+    """Write the per-ablation PNGs and ``table.md`` into ``out`` and print the table.
+
+    :return: the summary table
+    """
+    out.mkdir(parents=True, exist_ok=True)
     for name in names:
-        plot(records, name, envs, args.steps, args.bins, args.out / f"{name}.png")
-    table = summarise(records, args.steps)
+        plot(records, name, envs, steps, bins, out / f"{name}.png")
+    table = summarise(records, steps, bins)
     text = markdown_table(table)
-    (args.out / "table.md").write_text(text + "\n")
+    (out / "table.md").write_text(text + "\n")
     print(text)
     for (env, variant), row in table.items():
         print(f"{env}/{variant}_final_return: {row['final_mean']:.1f}")
     return table
+
+
+def tabulate_results(path: pathlib.Path, out: pathlib.Path, bins: int) -> dict[tuple[str, str], dict[str, float]]:
+    """Table and PNGs from the ``results.json`` of an earlier run (``--from-results``), without training.
+
+    :param path: the ``results.json``
+    :param out: output directory
+    :param bins: points of the reward curves
+    :return: the summary table
+    """
+    data = json.loads(pathlib.Path(path).read_text())
+    records = data["runs"]
+    steps = int(data["args"]["steps"])
+    names = [v for v in dict.fromkeys(r["variant"] for r in records) if v != BASELINE]
+    envs = list(dict.fromkeys(r["env_id"] for r in records))
+    return report(records, names, envs, steps, bins, out)
 
 
 if __name__ == "__main__":
