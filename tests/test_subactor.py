@@ -230,8 +230,9 @@ def test_imagination_start_indices():
     assert imagination_start_indices(10, 0.01, th.device("cpu")).shape == (1,)  # never zero starts
     with pytest.raises(ValueError, match="fraction"):
         imagination_start_indices(10, 0.0, th.device("cpu"))
-    with pytest.raises(ValueError, match="imag_start_fraction"):
-        tiny_config(imag_start_fraction=1.5)
+    for bad in (1.5, 0.0, "half", True):
+        with pytest.raises(ValueError, match="imag_start_fraction"):
+            tiny_config(imag_start_fraction=bad)
 
 
 def test_reward_terms_follow_the_weights():
