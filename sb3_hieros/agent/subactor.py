@@ -71,10 +71,14 @@ from sb3_hieros.nn.guard import step_if_finite
 
 __all__ = [
     "SUBGOAL_SUCCESS_THRESHOLD",
+    "ImaginationLearner",
     "Subactor",
     "action_layout",
+    "imagination_start_indices",
+    "learn_from_imagination",
     "level_actor_critic",
     "level_optimizers",
+    "metric_floats",
     "subgoal_space",
 ]
 
