@@ -22,13 +22,20 @@ HIEROS uses ``preset="small"`` plus ``--hieros-kwargs``. SB3's PPO trains whole 
 CartPole, 4096 with the Pendulum entry), so below that budget it trains more steps than the others; the table then
 names the steps it trained.
 
-Outputs in ``--out``: ``results.json`` (every run), ``table.md`` (final return mean +- std over seeds, side by side,
+Outputs in ``--out``: ``runs.jsonl`` (one line per finished run, written as it finishes), ``results.json`` (the runs
+of this invocation, in order), ``table.md`` (final return mean +- std over seeds, side by side,
 and wall time per run) and ``cpu_suite.png`` (evaluation return against agent steps, one panel per task). The
 script ends by printing the table.
 
+``--resume`` skips every run whose settings (task, algorithm, seed, steps, evaluation settings, HIEROS keywords)
+already have a line in ``runs.jsonl`` and takes its record from there, so a suite of several hours can be run task by
+task, or continued after an interruption, into one table. Each record names the git commit it ran at
+(``"commit"``); a resumed suite mixes commits only if the code changed in between, and the table does not hide that:
+check the commits in ``runs.jsonl``.
+
 Example (the issue's benchmark; long, run it on an idle machine)::
 
-    python -m benchmarks.cpu_suite --seeds 3 --steps 20000 --workers 2 --out cpu_suite
+    python -m benchmarks.cpu_suite --seeds 3 --steps 20000 --workers 2 --out cpu_suite --resume
 """
 
 from __future__ import annotations
@@ -39,14 +46,25 @@ import os
 import pathlib
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, astuple, dataclass, field, fields
 from typing import Any
 
 import numpy as np
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-__all__ = ["ALGOS", "TASKS", "SuiteRun", "TaskSpec", "run_suite_run", "suite_runs", "table", "zoo_hyperparams"]
+__all__ = [
+    "ALGOS",
+    "TASKS",
+    "SuiteRun",
+    "TaskSpec",
+    "finished_runs",
+    "run_key",
+    "run_suite_run",
+    "suite_runs",
+    "table",
+    "zoo_hyperparams",
+]
 
 
 @dataclass(frozen=True)
@@ -220,7 +238,58 @@ def run_suite_run(run: SuiteRun) -> dict[str, Any]:
         "final_mean": float(np.mean(returns)),
         "final_std": float(np.std(returns)),
         "wall_s": round(wall, 1),
+        "commit": _git_commit(),
     }
+
+
+def _git_commit() -> str | None:
+    """The commit of the checkout this file lies in (with ``+dirty`` for uncommitted changes), None outside git."""
+    import subprocess
+
+    root = pathlib.Path(__file__).resolve().parent.parent
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=root, capture_output=True, text=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return commit + ("+dirty" if dirty else "")
+
+
+def finished_runs(path: str | pathlib.Path) -> dict[tuple[Any, ...], dict[str, Any]]:
+    """The records of ``runs.jsonl`` (see ``--resume``) by :func:`run_key`; the last line of a run wins.
+
+    :param path: the ``runs.jsonl`` file; a missing file means no finished runs
+    :return: run key -> record
+    :raises ValueError: a line that is not a JSON record of a run, naming the file and the line number
+    """
+    path = pathlib.Path(path)
+    if not path.is_file():
+        return {}
+    names = [f.name for f in fields(SuiteRun)]
+    done: dict[tuple[Any, ...], dict[str, Any]] = {}
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+            run = SuiteRun(**{name: record[name] for name in names})
+        except (json.JSONDecodeError, KeyError, TypeError) as error:
+            raise ValueError(f"{path}:{number} is not a cpu_suite run record ({error}): {line[:80]!r}") from error
+        done[run_key(run)] = record
+    return done
+
+
+def run_key(run: SuiteRun) -> tuple[Any, ...]:
+    """The settings of ``run`` as a hashable tuple (HIEROS keywords as sorted JSON): the keys of :func:`finished_runs`.
+
+    :param run: a run
+    :return: its key
+    """
+    return tuple(json.dumps(v, sort_keys=True) if isinstance(v, dict) else v for v in astuple(run))
 
 
 def suite_runs(
@@ -340,6 +409,9 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--hieros-kwargs", default="{}", help="JSON dict of HIEROS keywords")
     parser.add_argument("--out", default="cpu_suite")
+    parser.add_argument(
+        "--resume", action="store_true", help="reuse the runs already recorded in <out>/runs.jsonl (same settings)"
+    )
     args = parser.parse_args(argv)
     runs = suite_runs(
         args.tasks,
@@ -358,9 +430,21 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
             flush=True,
         )
 
-    records = execute(run_suite_run, runs, workers=args.workers, report=report)
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    log = out / "runs.jsonl"
+    done = finished_runs(log) if args.resume else {}
+    todo = [run for run in runs if run_key(run) not in done]
+    if done:
+        print(f"--resume: {len(runs) - len(todo)} of {len(runs)} runs already in {log}", flush=True)
+
+    def record_run(record: dict[str, Any]) -> None:
+        with log.open("a") as handle:
+            handle.write(json.dumps(record) + "\n")
+        report(record)
+
+    fresh = iter(execute(run_suite_run, todo, workers=args.workers, report=record_run))
+    records = [done.get(run_key(run)) or next(fresh) for run in runs]
     markdown = table(records)
     (out / "results.json").write_text(json.dumps(records, indent=1))
     (out / "table.md").write_text(markdown + "\n")

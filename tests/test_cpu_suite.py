@@ -8,7 +8,7 @@ import pytest
 
 pytest.importorskip("rl_zoo3", reason="the 'zoo' extra is not installed")
 
-from benchmarks.cpu_suite import TASKS, main, suite_runs, zoo_hyperparams
+from benchmarks.cpu_suite import TASKS, finished_runs, main, run_key, suite_runs, zoo_hyperparams
 from benchmarks.sample_efficiency import ZOO_DQN, ZOO_PPO
 
 
@@ -52,3 +52,27 @@ def test_tiny_cartpole_suite(tmp_path):
     assert markdown.startswith("| Task | Steps | HIEROS small | PPO | DQN |") and "| CartPole-v1 | 256 |" in markdown
     assert (tmp_path / "cpu_suite.png").is_file()
     assert json.loads((tmp_path / "results.json").read_text()) == records
+    logged = [json.loads(line) for line in (tmp_path / "runs.jsonl").read_text().splitlines()]
+    assert sorted(r["algo"] for r in logged) == ["dqn", "hieros", "ppo"] and all(r["commit"] for r in logged)
+
+
+def test_resume_reuses_recorded_runs_and_runs_the_rest(tmp_path):
+    args = ["--tasks", "CartPole-v1", "--seeds", "1", "--steps", "64", "--eval-episodes", "1", "--n-evals", "1"]
+    first = main([*args, "--algos", "dqn", "--out", str(tmp_path)])
+    both = main([*args, "--algos", "ppo", "dqn", "--out", str(tmp_path), "--resume"])
+    assert [r["algo"] for r in both] == ["ppo", "dqn"] and both[1] == first[0]  # dqn taken from runs.jsonl
+    assert len((tmp_path / "runs.jsonl").read_text().splitlines()) == 2  # only ppo was trained again
+    again = main([*args, "--algos", "dqn", "--steps", "32", "--out", str(tmp_path), "--resume"])
+    assert again[0]["steps"] == 32 and again[0] != first[0]  # other settings: a new run
+    done = finished_runs(tmp_path / "runs.jsonl")
+    assert set(done) == {run_key(r) for r in suite_runs(["CartPole-v1"], ["ppo", "dqn"], [0], 64, 1, 1)} | {
+        run_key(suite_runs(["CartPole-v1"], ["dqn"], [0], 32, 1, 1)[0])
+    }
+
+
+def test_finished_runs_names_a_bad_line(tmp_path):
+    assert finished_runs(tmp_path / "missing.jsonl") == {}
+    log = tmp_path / "runs.jsonl"
+    log.write_text('{"task": "CartPole-v1"}\n')
+    with pytest.raises(ValueError, match=r"runs\.jsonl:1 is not a cpu_suite run record"):
+        finished_runs(log)
