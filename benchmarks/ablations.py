@@ -37,9 +37,10 @@ from typing import Any
 import numpy as np
 
 from benchmarks.sweep import Run, atari_id, run_sweep
-from sb3_hieros.ablations import ABLATIONS, ablation_overrides
+from sb3_hieros.ablations import ABLATIONS, ablation_changes_preset, ablation_overrides
 
-#: One ablation per thesis section (what ``--ablation all`` runs).
+#: One ablation per thesis section (what ``--ablation all`` runs; of ``no_novelty`` / ``with_novelty`` only the one
+#: that changes the preset).
 THESIS_SET = (
     "shared_world_model",
     "rssm",
@@ -53,15 +54,22 @@ THESIS_SET = (
     "extrinsic_top_only",
     "no_actor_extras",
     "no_novelty",
+    "with_novelty",
 )
 BASELINE = "hieros"
 FINAL_FRACTION = 0.2
 
 
-def ablation_names(requested: list[str]) -> list[str]:
+def ablation_names(requested: list[str], preset: str = "paper", base: dict[str, Any] | None = None) -> list[str]:
     """Expand ``all`` / ``every`` and check the names.
 
+    Ablations that leave the preset unchanged (e.g. ``no_novelty`` on the small preset, which has no novelty reward)
+    are left out of ``all`` / ``every``; asked for by name they raise ``ValueError``, as they would only train the
+    baseline twice.
+
     :param requested: names from the command line
+    :param preset: the preset the ablations apply to
+    :param base: ``config_overrides`` applied before each ablation
     :return: ablation names, in order, without duplicates
     """
     names: list[str] = []
@@ -70,6 +78,13 @@ def ablation_names(requested: list[str]) -> list[str]:
         for item in expanded:
             if item not in ABLATIONS:
                 raise ValueError(f"unknown ablation {item!r}; expected 'all', 'every' or one of {sorted(ABLATIONS)}")
+            if not ablation_changes_preset(item, preset, base):
+                if item == name:
+                    raise ValueError(
+                        f"ablation {item!r} does not change preset {preset!r} (with the given config_overrides): "
+                        "it would train the baseline again"
+                    )
+                continue
             if item not in names:
                 names.append(item)
     return names
@@ -225,7 +240,7 @@ def main(argv: list[str] | None = None) -> dict[tuple[str, str], dict[str, float
     extra = json.loads(args.hieros_kwargs)
     if not isinstance(extra, dict):
         raise ValueError(f"--hieros-kwargs must be a JSON object, got {args.hieros_kwargs!r}")
-    names = ablation_names(args.ablation)
+    names = ablation_names(args.ablation, args.preset, extra.get("config_overrides"))
     envs = [atari_id(g) for g in args.games] if args.games else list(args.env)
     from benchmarks._timing import environment_header
 

@@ -21,7 +21,14 @@ from typing import Any
 
 from sb3_hieros.config import REFERENCE_BEHAVIOUR, HierosConfig, get_preset
 
-__all__ = ["ABLATIONS", "Ablation", "ablation_config", "ablation_overrides", "merge_overrides"]
+__all__ = [
+    "ABLATIONS",
+    "Ablation",
+    "ablation_changes_preset",
+    "ablation_config",
+    "ablation_overrides",
+    "merge_overrides",
+]
 
 
 @dataclass(frozen=True)
@@ -106,6 +113,12 @@ _LIST = [
     ),
     Ablation("no_novelty", "5.3.12", "no novelty reward", _fixed({"actor_critic": {"novelty_weight": 0.0}})),
     Ablation(
+        "with_novelty",
+        "5.3.12",
+        "novelty reward at the thesis' weight 0.1 (the counterpart of no_novelty for the small preset, which has none)",
+        _fixed({"actor_critic": {"novelty_weight": 0.1}}),
+    ),
+    Ablation(
         "reference_actions",
         "reference",
         "world model trained on (z_{t-1}, a_t) as the reference code (note 8.1)",
@@ -177,3 +190,16 @@ def ablation_config(name: str, preset: str = "paper", base: Mapping[str, Any] | 
     :return: the configuration
     """
     return get_preset(preset).replace(**ablation_overrides(name, preset, base))
+
+
+def ablation_changes_preset(name: str, preset: str = "paper", base: Mapping[str, Any] | None = None) -> bool:
+    """Whether ablation ``name`` changes the configuration of ``preset`` (with ``base``) at all.
+
+    ``levels_2`` on the small preset (2 levels) or ``no_novelty`` on it (no novelty reward) are the preset itself.
+
+    :param name: see :func:`ablation_overrides`
+    :param preset: preset name
+    :param base: overrides applied before the ablation
+    :return: False where the ablation's configuration equals the preset's
+    """
+    return ablation_config(name, preset, base) != get_preset(preset).replace(**dict(base or {}))

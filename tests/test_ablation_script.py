@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from benchmarks.ablations import binned_curve, final_return, main, summarise
+from benchmarks.ablations import THESIS_SET, ablation_names, binned_curve, final_return, main, summarise
 
 
 def _record(variant: str, ends: list[int], returns: list[float], wall: float = 1.0) -> dict:
@@ -44,3 +44,17 @@ def test_from_results_tabulates_without_training(tmp_path):
     text = (tmp_path / "out" / "table.md").read_text()
     assert "| CartPole-v1 | no_novelty | 5.3.12 | 12.0 +- 0.0 | 10.0 | -18.0 |" in text
     assert (tmp_path / "out" / "no_novelty.png").is_file()
+
+
+def test_all_runs_the_novelty_ablation_that_changes_the_preset():
+    paper, small = ablation_names(["all"], "paper"), ablation_names(["all"], "small")
+    assert len(paper) == len(small) == len(THESIS_SET) - 1
+    assert "no_novelty" in paper and "with_novelty" not in paper
+    assert "with_novelty" in small and "no_novelty" not in small
+    assert "levels_2" not in ablation_names(["every"], "small") and "levels_2" in ablation_names(["every"], "paper")
+    # the tiny test networks switch novelty back on, so no_novelty changes "small" again
+    assert ablation_names(["no_novelty"], "small", {"actor_critic": {"novelty_weight": 0.1}}) == ["no_novelty"]
+    with pytest.raises(ValueError, match="'no_novelty' does not change preset 'small'"):
+        ablation_names(["no_novelty"], "small")
+    with pytest.raises(ValueError, match="unknown ablation 'nope'"):
+        ablation_names(["nope"], "small")

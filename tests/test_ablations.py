@@ -10,7 +10,13 @@ from hieros_helpers import TINY_OVERRIDES, CountingEnv, tiny_kwargs
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_hieros import HIEROS
-from sb3_hieros.ablations import ABLATIONS, ablation_config, ablation_overrides, merge_overrides
+from sb3_hieros.ablations import (
+    ABLATIONS,
+    ablation_changes_preset,
+    ablation_config,
+    ablation_overrides,
+    merge_overrides,
+)
 from sb3_hieros.agent import shared
 from sb3_hieros.agent.actor_critic import ActorCritic, lambda_returns
 from sb3_hieros.agent.shared import SharedLevel, start_windows
@@ -58,10 +64,12 @@ def test_registry_covers_every_thesis_ablation_and_resolves_on_both_presets():
     sections = {a.section for a in ABLATIONS.values()}
     assert {f"5.3.{i}" for i in range(1, 13)} <= sections
     assert "reference" in sections
+    # the preset itself: its own depth; the paper preset has the novelty reward, the small one has none
+    same = {("levels_3", "paper"), ("with_novelty", "paper"), ("levels_2", "small"), ("no_novelty", "small")}
     for name in ABLATIONS:
         for preset in ("paper", "small"):
-            if name != f"levels_{get_preset(preset).n_levels}":  # the depth of the preset itself
-                assert ablation_config(name, preset) != get_preset(preset), name
+            assert ablation_changes_preset(name, preset) == ((name, preset) not in same), (name, preset)
+            assert (ablation_config(name, preset) != get_preset(preset)) == ((name, preset) not in same), name
     assert ablation_config("small_s5", "paper").world_model.s5_layers == 4  # thesis: 4 instead of 8 blocks
     assert ablation_config("small_s5", "small").world_model.s5_layers == 1
     assert ablation_overrides("hieros", "small", {"n_levels": 3}) == {"n_levels": 3}
