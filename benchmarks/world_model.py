@@ -11,7 +11,7 @@ Parts (``--parts a,b,c,d``):
     and ``paper`` preset at T=64 with 64x64x3 images and 18 actions: fp32 eager, fp32 + compile, and bf16 eager /
     bf16 + compile where the CPU has native bf16 (goal >= 1.3x).
 (c) imagination of 1024 starts x 16 steps (no_grad, a 2-layer MLP actor included), S5 step vs RSSM step, for both
-    presets. Goal: S5 at most 1.2x slower.
+    presets, fp32 and (with native bf16) both world models under bf16 autocast. Goal: S5 at most 1.2x slower.
 (d) achieved GFLOP/s of one ``paper``-size level-0 S5WM update (FLOPs counted with ``FlopCounterMode``, matmul and
     convolution only), against this machine's matmul peak measured in the same run (4096x1024 @ 1024x1024 fp32).
     Goal >= 40 % of the fp32 peak.
@@ -309,22 +309,32 @@ def imagination(model: WorldModel, n_actions: int, units: int, starts: int, hori
 
 def part_c(args: argparse.Namespace) -> None:
     reps = 5 if args.quick else 10
+    precisions = ("fp32", "bf16") if bf16_hardware() or args.force_bf16 else ("fp32",)
     for preset, obs_shape, image, n_actions in (("small", (4,), False, 2), ("paper", (3, 64, 64), True, 18)):
         cfg = get_preset(preset)
         space = spaces.Box(0, 255, obs_shape, np.uint8) if image else spaces.Box(-np.inf, np.inf, obs_shape)
-        print(
-            f"\n(c) imagination 1024 starts x 16 steps, {preset} preset, no_grad, actor MLP 2x{cfg.actor_critic.units}"
-        )
-        variants = {
-            kind: imagination(
-                build(kind, cfg.world_model, space, n_actions), n_actions, cfg.actor_critic.units, 1024, 16
+        for precision in precisions:
+            print(
+                f"\n(c) imagination 1024 starts x 16 steps, {preset} preset, {precision}, no_grad, "
+                f"actor MLP 2x{cfg.actor_critic.units}"
             )
-            for kind in ("s5", "rssm")
-        }
-        timing = time_interleaved(variants, warmup=2, reps=reps)
-        for name, t in timing.items():
-            print(f"  {name:6s} {format_ms(t)}")
-        record(f"c_{preset}_s5_over_rssm", timing["s5"].median / timing["rssm"].median)
+            bf16 = precision == "bf16"
+            variants = {
+                kind: imagination(
+                    build(kind, cfg.world_model, space, n_actions, bf16=bf16),
+                    n_actions,
+                    cfg.actor_critic.units,
+                    1024,
+                    16,
+                )
+                for kind in ("s5", "rssm")
+            }
+            timing = time_interleaved(variants, warmup=2, reps=reps)
+            for name, t in timing.items():
+                print(f"  {name:6s} {format_ms(t)}")
+            suffix = "" if precision == "fp32" else "_bf16"
+            record(f"c_{preset}{suffix}_s5_over_rssm", timing["s5"].median / timing["rssm"].median)
+            record(f"c_{preset}{suffix}_s5_ms", timing["s5"].median * 1e3, "{:.0f}")
 
 
 # ----------------------------------------------------------------------------------------------------------------------

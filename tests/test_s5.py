@@ -324,6 +324,24 @@ def test_autocast_keeps_complex64_state():
     assert states.dtype == torch.complex64 and torch.isfinite(y).all()
 
 
+def test_bf16_autocast_runs_the_projections_in_bf16_and_keeps_step_and_scan_alike():
+    torch.manual_seed(0)
+    layer = S5Layer(H, P, J)
+    x, reset = _inputs()
+    y32, states32 = layer(x, reset)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        y, states = layer(x, reset)
+        state, steps = None, []
+        for t in range(x.shape[1]):
+            y_t, state = layer.step(x[:, t], state, reset[:, t])
+            steps.append(y_t)
+    assert states.dtype == torch.complex64 and y.dtype == torch.float32
+    assert not torch.equal(y, y32)  # the matmuls ran in bf16
+    torch.testing.assert_close(y, y32, rtol=0.05, atol=0.05)
+    torch.testing.assert_close(torch.stack(steps, 1), y, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(states, states32, rtol=0.05, atol=0.05)
+
+
 def test_bad_d_state_blocks():
     with pytest.raises(ValueError, match="divisible"):
         S5Layer(H, 10, n_blocks=3)

@@ -36,9 +36,10 @@ Design decisions (documented deviations from the public reference code, hieros_r
   ``a / max(1, |a|)`` rescaling is the identity on such inputs and is therefore not applied.
 
 Optional speed opt-ins (off by default): ``bf16=True`` runs encoder, decoder, heads and the dense layers around the
-sequence model under CPU/GPU bfloat16 autocast (the S5 scan and its complex state stay in fp32; the RSSM time loop
-stays in fp32 because casting tiny per-step matmuls costs more than it saves, perf_anchors.md 2.6); only useful on
-CPUs with native bf16 (AVX512-BF16 / AMX), elsewhere it is emulated and many times slower. And
+sequence model, and the S5 layers' input/output projections, under CPU/GPU bfloat16 autocast (the S5 scan and its
+complex state stay in fp32; the RSSM observe loop stays in fp32 because casting tiny per-step matmuls costs more
+than it saves, perf_anchors.md 2.6); only useful on CPUs with native bf16 (AVX512-BF16 / AMX), elsewhere it is
+emulated and many times slower. And
 ``compile=True`` compiles the convolutional encoder/decoder and the S5 parallel scan (``compile_s5``; the step form
 stays eager) or the RSSM loop cell with ``torch.compile`` (tens of seconds of compilation per new input shape; save
 the ``state_dict``, not the pickled module).

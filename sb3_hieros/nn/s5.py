@@ -293,7 +293,9 @@ class S5Layer(nn.Module):
     ``C = C_0 V`` with complex ``C_0`` of std ``1/sqrt(P)`` per part; ``D ~ N(0, 1)``;
     ``log_step ~ U[log dt_min, log dt_max]``.
 
-    The scan and the state run in the parameters' precision (float32 / complex64) even under autocast.
+    The scan and the state run in the parameters' precision (float32 / complex64) even under autocast; the input
+    and output projections (``B_bar u`` and ``Re(C x)``, the layer's matmuls) follow an enclosing autocast, so a bf16
+    autocast runs them in bf16 (the compiled real-split scan of :func:`compile_s5` stays in fp32 throughout).
 
     :param d_model: input and output width H
     :param d_state: complex state size P
@@ -415,10 +417,13 @@ class S5Layer(nn.Module):
                 )
                 return y, torch.view_as_complex(states)
             lambda_bar, w_in, w_out = self._real_weights()
-            bu = torch.view_as_complex(F.linear(u, w_in).view(batch, length, self.d_state, 2))  # (B, T, P)
             keep = (~reset).to(u.dtype).unsqueeze(-1)  # (B, T, 1)
+        bu = F.linear(u, w_in).to(u.dtype)  # (B, T, 2P), in an enclosing autocast's dtype, then back
+        with torch.autocast(device_type=x.device.type, enabled=False):
+            bu = torch.view_as_complex(bu.view(batch, length, self.d_state, 2))  # (B, T, P)
             states = associative_scan_resettable(lambda_bar, keep, bu, state)  # (B, T, P)
-            y = F.linear(torch.view_as_real(states).reshape(batch, length, 2 * self.d_state), w_out) + u * self.D
+        real_states = torch.view_as_real(states).reshape(batch, length, 2 * self.d_state)
+        y = F.linear(real_states, w_out).to(u.dtype) + u * self.D
         return y, states
 
     def forward(
@@ -447,13 +452,16 @@ class S5Layer(nn.Module):
         with torch.autocast(device_type=x.device.type, enabled=False):
             u = x.to(self.B.dtype)
             lambda_bar, w_in, w_out = self._real_weights()
-            new_state = torch.view_as_complex(F.linear(u, w_in).view(x.shape[0], self.d_state, 2))  # (B, P)
+        bu = F.linear(u, w_in).to(u.dtype)  # (B, 2P), in an enclosing autocast's dtype, then back
+        with torch.autocast(device_type=x.device.type, enabled=False):
+            new_state = torch.view_as_complex(bu.view(x.shape[0], self.d_state, 2))  # (B, P)
             if state is not None:
                 carried = lambda_bar * state
                 if reset is not None:
                     carried = carried * (~reset).to(u.dtype).unsqueeze(-1)
                 new_state = carried + new_state
-            y = F.linear(torch.view_as_real(new_state).reshape(x.shape[0], 2 * self.d_state), w_out) + u * self.D
+        real_state = torch.view_as_real(new_state).reshape(x.shape[0], 2 * self.d_state)
+        y = F.linear(real_state, w_out).to(u.dtype) + u * self.D
         return y, new_state
 
     def step(
