@@ -294,6 +294,30 @@ def test_act_returns_valid_actions(case):
     assert th.equal(sub.act(state, goal, True), sub.act(state, goal, True))
 
 
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_state_estimates_match_the_heads_and_critics(case):
+    sub = CASES[case]()
+    state = observed_state(sub)
+    goal = random_subgoal(sub) if sub.subgoal_input else None
+    est = sub.state_estimates(state, goal)
+    assert sorted(est) == sorted(["reward", "continue", *(f"value/{k}" for k in sub.reward_terms)])
+    assert all(v.shape == (4,) and th.isfinite(v).all() for v in est.values())
+    assert th.all((est["continue"] >= 0.0) & (est["continue"] <= 1.0))
+    assert th.allclose(est["reward"], sub.world_model.reward(state))
+    feat, _, _ = sub._features(state, sub._goal_features(goal))
+    for name in sub.reward_terms:
+        assert th.allclose(est[f"value/{name}"], sub.actor_critic.critics[name].value(feat))
+    # the critic's output layer starts at zero (out_scale=0); move it and the estimate must follow
+    critic = sub.actor_critic.critics["extrinsic"]
+    with th.no_grad():
+        last = [m for m in critic.net.modules() if isinstance(m, th.nn.Linear)][-1]
+        last.bias.copy_(th.linspace(-3.0, 3.0, last.bias.numel()))
+    assert not th.allclose(sub.state_estimates(state, goal)["value/extrinsic"], est["value/extrinsic"])
+    if sub.subgoal_input:
+        with pytest.raises(ValueError, match="subgoal"):
+            sub.state_estimates(state, goal[:2])
+
+
 def test_sampled_actions_vary():
     sub = make_subactor(action_space=spaces.Box(-1.0, 1.0, (2,), np.float32))
     state = observed_state(sub, batch=1)

@@ -561,6 +561,23 @@ class Subactor(nn.Module):
         return action.reshape(batch, self.action_dim)
 
     @th.no_grad()
+    def state_estimates(self, state: LatentState, subgoal: th.Tensor | None) -> dict[str, th.Tensor]:
+        """What this level predicts about ``state``: the world model's reward and continue heads and the value of
+        each active reward term's fast critic (eq. 4.3), for diagnostics (e.g. ``benchmarks/cartpole_failures.py``).
+
+        :param state: world state (batch (B,))
+        :param subgoal: (B, n_cat * n_classes) or (B, n_cat, n_classes) one-hot subgoal in force; None at the top
+        :return: ``"reward"``, ``"continue"`` and ``"value/<term>"`` for every term of :attr:`reward_terms`, each (B,)
+        """
+        batch = self._check_state(state)
+        goal = self._check_subgoal_arg(subgoal, (batch,), "subgoal")
+        feat, reward, cont = self._features(state, self._goal_features(goal))
+        out = {"reward": reward, "continue": cont}
+        for name in self.reward_terms:
+            out[f"value/{name}"] = self.actor_critic.critics[name].value(feat)
+        return out
+
+    @th.no_grad()
     def encoded_observation(self, state: LatentState) -> th.Tensor:
         """One world state as the level above sees it (thesis 4.3), to be concatenated over k steps.
 

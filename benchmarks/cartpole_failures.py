@@ -1,0 +1,130 @@
+"""Why a trained HIEROS agent's CartPole-v1 episodes end, and what level 0 believes on the way.
+
+Loads a saved model (e.g. ``results/demo/model.zip`` from ``make demo``), plays ``--episodes`` episodes on seeds
+``--seed``, ``--seed + 1``, ... (deterministic policy unless ``--stochastic``) and reports:
+
+* how each episode ended: the cart left the track (``|x| > x_threshold``), the pole fell
+  (``|theta| > theta_threshold``), or the 500-step time limit;
+* per bin of the cart position |x|, level 0's mean predicted continue probability and extrinsic value
+  (:meth:`sb3_hieros.agent.subactor.Subactor.state_estimates` at the posterior state after each observation, with
+  the subgoal in force).
+
+Example::
+
+    python -m benchmarks.cartpole_failures results/demo/model.zip --episodes 10
+
+The last lines print each figure as ``name: value``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import pathlib
+from collections.abc import Sequence
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+
+from benchmarks._timing import environment_header
+from sb3_hieros import HIEROS
+
+X_BINS = (0.0, 0.5, 1.0, 1.5, 2.0, 2.4)
+
+
+def end_cause(obs: np.ndarray, terminated: bool, env: gym.Env) -> str:
+    """``"x"`` (cart off the track), ``"theta"`` (pole fell) or ``"time_limit"`` for the last observation of an
+    episode.
+
+    :param obs: last observation ``(x, x_dot, theta, theta_dot)``
+    :param terminated: the env's ``terminated`` flag
+    :param env: the CartPole env (its thresholds)
+    :return: the cause
+    """
+    if not terminated:
+        return "time_limit"
+    return "x" if abs(obs[0]) > env.unwrapped.x_threshold else "theta"
+
+
+def play(model: HIEROS, seed: int, deterministic: bool) -> tuple[np.ndarray, dict[str, np.ndarray], str]:
+    """One episode.
+
+    :return: observations ``(T, 4)`` the agent acted on, level 0's :meth:`state_estimates` at each of them
+        (each ``(T,)``) and the end cause
+    """
+    env = gym.make("CartPole-v1")
+    obs, _ = env.reset(seed=seed)
+    policy = model.policy
+    level0 = policy.subactor(0)
+    state, start = None, np.ones((1,), dtype=bool)
+    seen, estimates = [], []
+    while True:
+        action, state = model.predict(obs[None], state=state, episode_start=start, deterministic=deterministic)
+        start = np.zeros((1,), dtype=bool)
+        hier = policy.state_from_numpy(state, 1)
+        subgoal = hier.actions[1] if len(hier.actions) > 1 else None
+        est = level0.state_estimates(hier.latents[0], subgoal)
+        estimates.append({k: float(v[0]) for k, v in est.items()})
+        seen.append(obs)
+        obs, _, terminated, truncated, _ = env.step(int(action[0]))
+        if terminated or truncated:
+            cause = end_cause(obs, terminated, env)
+            env.close()
+            stacked = {k: np.array([e[k] for e in estimates]) for k in estimates[0]}
+            return np.array(seen), stacked, cause
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, float]:
+    """Play the episodes, print the per-episode lines, the |x| table and the ``name: value`` figures.
+
+    :return: the figures
+    """
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("model", type=pathlib.Path, help="a HIEROS save trained on CartPole-v1")
+    parser.add_argument("--episodes", type=int, default=10)
+    parser.add_argument("--seed", type=int, default=10_000, help="seed of the first episode")
+    parser.add_argument("--stochastic", action="store_true", help="sample actions instead of the policy mode")
+    args = parser.parse_args(argv)
+    if args.episodes < 1:
+        raise ValueError(f"--episodes must be >= 1, got {args.episodes}")
+    print(environment_header())
+    model = HIEROS.load(args.model, device="cpu")
+    if model.observation_space.shape != (4,) or getattr(model.action_space, "n", None) != 2:
+        raise ValueError(
+            f"{args.model} was not trained on CartPole-v1: observation space {model.observation_space}, "
+            f"action space {model.action_space}"
+        )
+    th.manual_seed(args.seed)
+    causes = {"x": 0, "theta": 0, "time_limit": 0}
+    lengths, xs, conts, values = [], [], [], []
+    for i in range(args.episodes):
+        obs, est, cause = play(model, args.seed + i, not args.stochastic)
+        causes[cause] += 1
+        lengths.append(len(obs))
+        xs.append(np.abs(obs[:, 0]))
+        conts.append(est["continue"])
+        values.append(est["value/extrinsic"])
+        print(
+            f"episode {i}: length {len(obs)}, end {cause}, last x {obs[-1, 0]:+.2f}, last theta {obs[-1, 2]:+.3f}, "
+            f"value {values[-1][0]:.1f} at the start, {values[-1][-1]:.1f} at the end"
+        )
+    x, cont, value = np.concatenate(xs), np.concatenate(conts), np.concatenate(values)
+    print("\n| abs(x) | steps | mean continue | mean extrinsic value |\n|---|---:|---:|---:|")
+    for lo, hi in itertools.pairwise(X_BINS):
+        inside = (x >= lo) & (x < hi)
+        if inside.any():
+            print(f"| {lo:.1f}-{hi:.1f} | {inside.sum()} | {cont[inside].mean():.3f} | {value[inside].mean():.1f} |")
+    figures = {
+        "mean_length": float(np.mean(lengths)),
+        "ended_cart_off_track": float(causes["x"]),
+        "ended_pole_fell": float(causes["theta"]),
+        "ended_time_limit": float(causes["time_limit"]),
+    }
+    for name, v in figures.items():
+        print(f"{name}: {v:g}")
+    return figures
+
+
+if __name__ == "__main__":
+    main()
