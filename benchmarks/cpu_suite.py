@@ -388,8 +388,8 @@ def plot(records: Sequence[dict[str, Any]], path: str | pathlib.Path) -> None:
             ax.fill_between(x, curves.min(0), curves.max(0), color=colors[algo], alpha=0.15)
         ax.set_title(task, fontsize=10)
         ax.set_xlabel("agent steps")
+        ax.legend(fontsize=8)  # one per panel: the algorithms differ between tasks
     axes[0][0].set_ylabel("evaluation return")
-    axes[0][0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
