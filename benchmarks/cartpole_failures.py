@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import pathlib
+from collections import defaultdict
 from collections.abc import Sequence
 
 import gymnasium as gym
@@ -47,32 +48,28 @@ def end_cause(obs: np.ndarray, terminated: bool, env: gym.Env) -> str:
     return "x" if abs(obs[0]) > env.unwrapped.x_threshold else "theta"
 
 
-def play(model: HIEROS, seed: int, deterministic: bool) -> tuple[np.ndarray, dict[str, np.ndarray], str]:
-    """One episode.
+def play(model: HIEROS, env: gym.Env, seed: int, deterministic: bool) -> tuple[np.ndarray, dict[str, np.ndarray], str]:
+    """One episode on ``env`` (a CartPole-v1 env, reset here with ``seed``).
 
     :return: observations ``(T, 4)`` the agent acted on, level 0's :meth:`state_estimates` at each of them
         (each ``(T,)``) and the end cause
     """
-    env = gym.make("CartPole-v1")
     obs, _ = env.reset(seed=seed)
     policy = model.policy
     level0 = policy.subactor(0)
     state, start = None, np.ones((1,), dtype=bool)
-    seen, estimates = [], []
+    seen, estimates = [], defaultdict(list)
     while True:
         action, state = model.predict(obs[None], state=state, episode_start=start, deterministic=deterministic)
         start = np.zeros((1,), dtype=bool)
         hier = policy.state_from_numpy(state, 1)
         subgoal = hier.actions[1] if len(hier.actions) > 1 else None
-        est = level0.state_estimates(hier.latents[0], subgoal)
-        estimates.append({k: float(v[0]) for k, v in est.items()})
+        for name, value in level0.state_estimates(hier.latents[0], subgoal).items():
+            estimates[name].append(float(value[0]))
         seen.append(obs)
         obs, _, terminated, truncated, _ = env.step(int(action[0]))
         if terminated or truncated:
-            cause = end_cause(obs, terminated, env)
-            env.close()
-            stacked = {k: np.array([e[k] for e in estimates]) for k in estimates[0]}
-            return np.array(seen), stacked, cause
+            return np.array(seen), {k: np.array(v) for k, v in estimates.items()}, end_cause(obs, terminated, env)
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, float]:
@@ -98,8 +95,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, float]:
     th.manual_seed(args.seed)
     causes = {"x": 0, "theta": 0, "time_limit": 0}
     lengths, xs, conts, values = [], [], [], []
+    env = gym.make("CartPole-v1")
     for i in range(args.episodes):
-        obs, est, cause = play(model, args.seed + i, not args.stochastic)
+        obs, est, cause = play(model, env, args.seed + i, not args.stochastic)
         causes[cause] += 1
         lengths.append(len(obs))
         xs.append(np.abs(obs[:, 0]))
@@ -109,6 +107,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, float]:
             f"episode {i}: length {len(obs)}, end {cause}, last x {obs[-1, 0]:+.2f}, last theta {obs[-1, 2]:+.3f}, "
             f"value {values[-1][0]:.1f} at the start, {values[-1][-1]:.1f} at the end"
         )
+    env.close()
     x, cont, value = np.concatenate(xs), np.concatenate(conts), np.concatenate(values)
     print("\n| abs(x) | steps | mean continue | mean extrinsic value |\n|---|---:|---:|---:|")
     for lo, hi in itertools.pairwise(X_BINS):

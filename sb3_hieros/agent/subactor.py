@@ -544,6 +544,14 @@ class Subactor(nn.Module):
         )
         return feat, reward, cont
 
+    def _checked_features(
+        self, state: LatentState, subgoal: th.Tensor | None
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        """:meth:`_features` of a user-given ``state`` (batch (B,)) and ``subgoal``, both checked first."""
+        batch = self._check_state(state)
+        goal = self._check_subgoal_arg(subgoal, (batch,), "subgoal")
+        return self._features(state, self._goal_features(goal))
+
     @th.no_grad()
     def act(self, state: LatentState, subgoal: th.Tensor | None, deterministic: bool = False) -> th.Tensor:
         """Action of this level in ``state`` (eq. 4.6; no gradients).
@@ -554,11 +562,9 @@ class Subactor(nn.Module):
         :param deterministic: the distribution's mode (thesis 4.3.2 for environment interaction) instead of a sample
         :return: (B, A): one-hot for Discrete, ``n_cat * n_classes`` grouped one-hot for subgoals, [-1, 1] for Box
         """
-        batch = self._check_state(state)
-        goal = self._check_subgoal_arg(subgoal, (batch,), "subgoal")
-        feat, _, _ = self._features(state, self._goal_features(goal))
+        feat, _, _ = self._checked_features(state, subgoal)
         action = self.actor_critic.act(feat, deterministic)
-        return action.reshape(batch, self.action_dim)
+        return action.reshape(feat.shape[0], self.action_dim)
 
     @th.no_grad()
     def state_estimates(self, state: LatentState, subgoal: th.Tensor | None) -> dict[str, th.Tensor]:
@@ -569,9 +575,7 @@ class Subactor(nn.Module):
         :param subgoal: (B, n_cat * n_classes) or (B, n_cat, n_classes) one-hot subgoal in force; None at the top
         :return: ``"reward"``, ``"continue"`` and ``"value/<term>"`` for every term of :attr:`reward_terms`, each (B,)
         """
-        batch = self._check_state(state)
-        goal = self._check_subgoal_arg(subgoal, (batch,), "subgoal")
-        feat, reward, cont = self._features(state, self._goal_features(goal))
+        feat, reward, cont = self._checked_features(state, subgoal)
         out = {"reward": reward, "continue": cont}
         for name in self.reward_terms:
             out[f"value/{name}"] = self.actor_critic.critics[name].value(feat)
