@@ -31,11 +31,16 @@ script ends by printing the table.
 already have a line in ``runs.jsonl`` and takes its record from there, so a suite of several hours can be run task by
 task, or continued after an interruption, into one table. Each record names the git commit it ran at
 (``"commit"``); a resumed suite mixes commits only if the code changed in between, and the table does not hide that:
-check the commits in ``runs.jsonl``.
+check the commits in ``runs.jsonl``. ``--report`` trains nothing: it remakes ``table.md`` and the PNG from the
+records in ``runs.jsonl`` of the runs asked for, whatever their evaluation settings (so a pixel task evaluated on
+fewer episodes, each 500 rendered steps, joins the table; its "Final eval" cell says how many).
 
-Example (long: about 20 minutes per HIEROS run of 10k steps on one core; run it task by task)::
+Example (long: about 20 minutes per HIEROS run of 10k steps on one core; run it task by task, then make the table)::
 
     python -m benchmarks.cpu_suite --seeds 3 --steps 10000 --out docs/cpu_suite --resume --tasks Pendulum-v1
+    python -m benchmarks.cpu_suite --seeds 3 --steps 10000 --out docs/cpu_suite --resume --eval-episodes 3
+        --tasks cartpole-balance-pixels   # (one line)
+    python -m benchmarks.cpu_suite --seeds 3 --steps 10000 --out docs/cpu_suite --report
 
 ``docs/cpu_suite/`` holds the runs made so far and the table the README shows.
 """
@@ -61,6 +66,7 @@ __all__ = [
     "SuiteRun",
     "TaskSpec",
     "finished_runs",
+    "recorded_runs",
     "run_key",
     "run_suite_run",
     "suite_runs",
@@ -294,6 +300,35 @@ def run_key(run: SuiteRun) -> tuple[Any, ...]:
     return tuple(json.dumps(v, sort_keys=True) if isinstance(v, dict) else v for v in astuple(run))
 
 
+def recorded_runs(path: str | pathlib.Path, runs: Sequence[SuiteRun]) -> list[dict[str, Any]]:
+    """The records of ``runs.jsonl`` for ``runs`` (see ``--report``), matched on task, algorithm, seed, steps and
+    HIEROS keywords but not on the evaluation settings, so tasks evaluated differently (fewer episodes on pixels) can
+    share one table. Runs without a record are left out.
+
+    :param path: the ``runs.jsonl`` file
+    :param runs: the runs wanted, in table order
+    :return: the records found, in the order of ``runs``
+    :raises ValueError: two records of one run that differ only in their evaluation settings
+    """
+
+    def settings(run: SuiteRun | dict[str, Any]) -> tuple[Any, ...]:
+        fields_ = asdict(run) if isinstance(run, SuiteRun) else run
+        names = ("task", "algo", "seed", "steps")
+        return (*(fields_[n] for n in names), json.dumps(fields_["hieros_kwargs"], sort_keys=True))
+
+    found: dict[tuple[Any, ...], dict[str, Any]] = {}
+    for record in finished_runs(path).values():
+        key = settings(record)
+        if key in found:
+            evals = [(r["n_evals"], r["eval_episodes"]) for r in (found[key], record)]
+            raise ValueError(
+                f"{path} has two records of {key[:4]} with different evaluation settings (n_evals, eval_episodes) "
+                f"{evals[0]} and {evals[1]}; expected one per run: remove the line you do not want in the table"
+            )
+        found[key] = record
+    return [found[settings(run)] for run in runs if settings(run) in found]
+
+
 def suite_runs(
     tasks: Sequence[str],
     algos: Sequence[str],
@@ -334,16 +369,19 @@ def suite_runs(
 
 
 def table(records: Sequence[dict[str, Any]]) -> str:
-    """Markdown table: one row per task, per algorithm the final return (mean +- std over seeds) and wall time, and
-    the steps actually trained where they exceed the budget (PPO trains whole rollouts of ``n_steps * n_envs``).
+    """Markdown table: one row per task with the episodes of its final evaluation, per algorithm the final return
+    (mean +- std over seeds) and wall time, and the steps actually trained where they exceed the budget (PPO trains
+    whole rollouts of ``n_steps * n_envs``).
 
     :param records: results of :func:`run_suite_run`
     :return: the table
     """
     algos = [a for a in ALGOS if any(r["algo"] == a for r in records)]
     lines = [
-        "| Task | Steps | " + " | ".join(f"{a.upper() if a != 'hieros' else 'HIEROS small'}" for a in algos) + " |",
-        "|---|---:|" + "---:|" * len(algos),
+        "| Task | Steps | Final eval | "
+        + " | ".join(f"{a.upper() if a != 'hieros' else 'HIEROS small'}" for a in algos)
+        + " |",
+        "|---|---:|---:|" + "---:|" * len(algos),
     ]
     for task in dict.fromkeys(r["task"] for r in records):
         cells = []
@@ -358,7 +396,8 @@ def table(records: Sequence[dict[str, Any]]) -> str:
             extra = f", {trained:,} steps" if trained != runs[0]["steps"] else ""
             cells.append(f"{finals.mean():.1f} +- {finals.std():.1f} ({len(runs)} seeds, {wall:.0f} s/run{extra})")
         steps = max(r["steps"] for r in records if r["task"] == task)
-        lines.append(f"| {task} | {steps:,} | " + " | ".join(cells) + " |")
+        episodes = "/".join(str(e) for e in sorted({r["eval_episodes"] for r in records if r["task"] == task}))
+        lines.append(f"| {task} | {steps:,} | {episodes} episodes | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -414,6 +453,12 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument(
         "--resume", action="store_true", help="reuse the runs already recorded in <out>/runs.jsonl (same settings)"
     )
+    parser.add_argument(
+        "--report",
+        action="store_true",
+        help="train nothing: remake table.md and the PNG from <out>/runs.jsonl for --tasks/--algos/--seeds/--steps, "
+        "whatever their evaluation settings",
+    )
     args = parser.parse_args(argv)
     runs = suite_runs(
         args.tasks,
@@ -435,20 +480,27 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     log = out / "runs.jsonl"
-    done = finished_runs(log) if args.resume else {}
-    todo = [run for run in runs if run_key(run) not in done]
-    if done:
-        print(f"--resume: {len(runs) - len(todo)} of {len(runs)} runs already in {log}", flush=True)
+    if args.report:
+        records = recorded_runs(log, runs)
+        if not records:
+            raise ValueError(f"{log} records none of the {len(runs)} runs asked for; expected at least one")
+        if len(records) < len(runs):
+            print(f"--report: {len(runs) - len(records)} of {len(runs)} runs not in {log}, left out", flush=True)
+    else:
+        done = finished_runs(log) if args.resume else {}
+        todo = [run for run in runs if run_key(run) not in done]
+        if done:
+            print(f"--resume: {len(runs) - len(todo)} of {len(runs)} runs already in {log}", flush=True)
 
-    def record_run(record: dict[str, Any]) -> None:
-        with log.open("a") as handle:
-            handle.write(json.dumps(record) + "\n")
-        report(record)
+        def record_run(record: dict[str, Any]) -> None:
+            with log.open("a") as handle:
+                handle.write(json.dumps(record) + "\n")
+            report(record)
 
-    fresh = iter(execute(run_suite_run, todo, workers=args.workers, report=record_run))
-    records = [done.get(run_key(run)) or next(fresh) for run in runs]
+        fresh = iter(execute(run_suite_run, todo, workers=args.workers, report=record_run))
+        records = [done.get(run_key(run)) or next(fresh) for run in runs]
+        (out / "results.json").write_text(json.dumps(records, indent=1))
     markdown = table(records)
-    (out / "results.json").write_text(json.dumps(records, indent=1))
     (out / "table.md").write_text(markdown + "\n")
     plot(records, out / "cpu_suite.png")
     print(markdown)

@@ -8,7 +8,7 @@ import pytest
 
 pytest.importorskip("rl_zoo3", reason="the 'zoo' extra is not installed")
 
-from benchmarks.cpu_suite import TASKS, finished_runs, main, run_key, suite_runs, zoo_hyperparams
+from benchmarks.cpu_suite import TASKS, finished_runs, main, recorded_runs, run_key, suite_runs, zoo_hyperparams
 from benchmarks.sample_efficiency import ZOO_DQN, ZOO_PPO
 
 
@@ -49,7 +49,8 @@ def test_tiny_cartpole_suite(tmp_path):
         assert record["eval_steps"][0] >= 128 and record["eval_steps"][-1] >= 256 and len(record["eval_returns"]) == 2
         assert record["final_mean"] == record["eval_returns"][-1] > 0 and record["trained_steps"] == 256
     markdown = (tmp_path / "table.md").read_text()
-    assert markdown.startswith("| Task | Steps | HIEROS small | PPO | DQN |") and "| CartPole-v1 | 256 |" in markdown
+    assert markdown.startswith("| Task | Steps | Final eval | HIEROS small | PPO | DQN |")
+    assert "| CartPole-v1 | 256 | 2 episodes |" in markdown
     assert (tmp_path / "cpu_suite.png").is_file()
     assert json.loads((tmp_path / "results.json").read_text()) == records
     logged = [json.loads(line) for line in (tmp_path / "runs.jsonl").read_text().splitlines()]
@@ -68,6 +69,23 @@ def test_resume_reuses_recorded_runs_and_runs_the_rest(tmp_path):
     assert set(done) == {run_key(r) for r in suite_runs(["CartPole-v1"], ["ppo", "dqn"], [0], 64, 1, 1)} | {
         run_key(suite_runs(["CartPole-v1"], ["dqn"], [0], 32, 1, 1)[0])
     }
+
+
+def test_report_tables_recorded_runs_of_any_evaluation_settings(tmp_path):
+    args = ["--tasks", "CartPole-v1", "--seeds", "1", "--steps", "64", "--n-evals", "1", "--out", str(tmp_path)]
+    ppo = main([*args, "--algos", "ppo", "--eval-episodes", "1"])
+    dqn = main([*args, "--algos", "dqn", "--eval-episodes", "2"])
+    log = (tmp_path / "runs.jsonl").read_text()
+    reported = main([*args, "--report"])  # hieros has no record: left out
+    assert reported == ppo + dqn and (tmp_path / "runs.jsonl").read_text() == log  # nothing trained
+    assert "| CartPole-v1 | 64 | 1/2 episodes |" in (tmp_path / "table.md").read_text()
+    with pytest.raises(ValueError, match="records none of the 3 runs"):
+        main([*args, "--report", "--steps", "32"])
+    main([*args, "--algos", "dqn", "--eval-episodes", "1"])  # the same run, evaluated differently
+    with pytest.raises(
+        ValueError, match=r"different evaluation settings \(n_evals, eval_episodes\) \(1, 2\) and \(1, 1\)"
+    ):
+        recorded_runs(tmp_path / "runs.jsonl", suite_runs(["CartPole-v1"], ["dqn"], [0], 64))
 
 
 def test_finished_runs_names_a_bad_line(tmp_path):
