@@ -9,9 +9,14 @@ Loads a saved model (e.g. ``results/demo/model.zip`` from ``make demo``), plays 
   (:meth:`sb3_hieros.agent.subactor.Subactor.state_estimates` at the posterior state after each observation, with
   the subgoal in force).
 
+``--reset-every R`` restarts the agent's hierarchical recurrent state every R steps (the env goes on), as if a new
+episode began: training sees chunks of ``batch_length`` steps from a fresh state, acting a whole episode, so this
+tells whether late-episode failures come from recurrent states longer than training ever saw.
+
 Example::
 
     python -m benchmarks.cartpole_failures results/demo/model.zip --episodes 10
+    python -m benchmarks.cartpole_failures results/demo/model.zip --episodes 10 --reset-every 16
 
 The last lines print each figure as ``name: value``.
 """
@@ -48,20 +53,28 @@ def end_cause(obs: np.ndarray, terminated: bool, env: gym.Env) -> str:
     return "x" if abs(obs[0]) > env.unwrapped.x_threshold else "theta"
 
 
-def play(model: HIEROS, env: gym.Env, seed: int, deterministic: bool) -> tuple[np.ndarray, dict[str, np.ndarray], str]:
+def play(
+    model: HIEROS, env: gym.Env, seed: int, deterministic: bool, reset_every: int = 0
+) -> tuple[np.ndarray, dict[str, np.ndarray], str]:
     """One episode on ``env`` (a CartPole-v1 env, reset here with ``seed``).
 
+    :param model: the agent
+    :param env: a CartPole-v1 env
+    :param seed: seed of ``env.reset``
+    :param deterministic: policy modes instead of samples
+    :param reset_every: restart the agent's recurrent state every ``reset_every`` steps (0: only at the start)
     :return: observations ``(T, 4)`` the agent acted on, level 0's :meth:`state_estimates` at each of them
         (each ``(T,)``) and the end cause
     """
     obs, _ = env.reset(seed=seed)
     policy = model.policy
     level0 = policy.subactor(0)
-    state, start = None, np.ones((1,), dtype=bool)
+    state = None
     seen, estimates = [], defaultdict(list)
     while True:
+        t = len(seen)
+        start = np.array([t == 0 or (reset_every > 0 and t % reset_every == 0)])
         action, state = model.predict(obs[None], state=state, episode_start=start, deterministic=deterministic)
-        start = np.zeros((1,), dtype=bool)
         hier = policy.state_from_numpy(state, 1)
         subgoal = hier.actions[1] if len(hier.actions) > 1 else None
         for name, value in level0.state_estimates(hier.latents[0], subgoal).items():
@@ -82,9 +95,14 @@ def main(argv: Sequence[str] | None = None) -> dict[str, float]:
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--seed", type=int, default=10_000, help="seed of the first episode")
     parser.add_argument("--stochastic", action="store_true", help="sample actions instead of the policy mode")
+    parser.add_argument(
+        "--reset-every", type=int, default=0, help="restart the agent's recurrent state every N steps (0: never)"
+    )
     args = parser.parse_args(argv)
     if args.episodes < 1:
         raise ValueError(f"--episodes must be >= 1, got {args.episodes}")
+    if args.reset_every < 0:
+        raise ValueError(f"--reset-every must be >= 0 (0: never), got {args.reset_every}")
     print(environment_header())
     model = HIEROS.load(args.model, device="cpu")
     if model.observation_space.shape != (4,) or getattr(model.action_space, "n", None) != 2:
@@ -97,7 +115,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, float]:
     lengths, xs, conts, values = [], [], [], []
     env = gym.make("CartPole-v1")
     for i in range(args.episodes):
-        obs, est, cause = play(model, env, args.seed + i, not args.stochastic)
+        obs, est, cause = play(model, env, args.seed + i, not args.stochastic, args.reset_every)
         causes[cause] += 1
         lengths.append(len(obs))
         xs.append(np.abs(obs[:, 0]))

@@ -12,6 +12,8 @@ Row t of a stream is one step in the Dreamer view:
 ``is_first[t]``           o_t is the first observation of an episode (bool)
 ``is_terminal[t]``        o_t is a terminal observation (bool; a time-limit truncation is not terminal)
 ``subgoals[t]``           g_t, the subgoal in force at o_t (float32, only if ``subgoal_shape`` is given)
+``context[t]``            the world model's packed state after o_t when row t was last trained on (float32,
+                          only if ``context_dim > 0``; see *Replay context*)
 ========================  ==================================================================
 
 :meth:`SequenceReplayBuffer.add_step` writes such a row directly (for HIEROS's higher levels).
@@ -47,6 +49,16 @@ generator (it pickles cleanly for ``save_replay_buffer`` / ``load_replay_buffer`
 
 :class:`ETBSReplayBuffer` selects the chunk start by insertion age with efficient time-balanced sampling
 (:mod:`sb3_hieros.etbs`, thesis section 4.5) instead of uniformly.
+
+Replay context
+--------------
+With ``context_dim > 0`` each row can hold an opaque float vector, the learner's state after that step (HIEROS
+stores :meth:`~sb3_hieros.agent.world_model.WorldModel.pack_context` of the posterior). :meth:`store_context`
+writes it for the rows of a sampled batch (:attr:`SequenceSamples.index`); a later chunk starting at row s gets the
+vector of row s - 1 as :attr:`SequenceSamples.context` if that row holds one and precedes s in the same stream
+(zeros otherwise: the chunk starts at the stream's oldest row, or row s - 1 was never trained on). Writing a new
+step into a row drops its vector. This is DreamerV3's replay context: the sequence model is trained from states
+of the same length of history as in acting instead of from zeros at every chunk start.
 """
 
 from __future__ import annotations
@@ -131,6 +143,10 @@ class SequenceSamples(NamedTuple):
     :param is_first: ``(B, T)`` bool, episode starts
     :param is_terminal: ``(B, T)`` bool, terminal observations (continue target = ``~is_terminal``)
     :param subgoals: ``(B, T, *subgoal_shape)`` float32, the subgoal in force at each step, or None
+    :param context: ``(B, context_dim)`` float32, the stored context of the row before each chunk (zeros where there
+        is none), or None if the buffer keeps no context
+    :param index: where the chunks lie, ``(rows (B, T), streams (B,))`` numpy int64 arrays, for
+        :meth:`SequenceReplayBuffer.store_context`; None for batches not drawn from a buffer
     """
 
     observations: th.Tensor | dict[str, th.Tensor]
@@ -139,6 +155,8 @@ class SequenceSamples(NamedTuple):
     is_first: th.Tensor
     is_terminal: th.Tensor
     subgoals: th.Tensor | None
+    context: th.Tensor | None = None
+    index: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def _check_shape(
@@ -169,6 +187,7 @@ class SequenceReplayBuffer(ReplayBuffer):
     :param handle_timeout_termination: if True, a done with ``infos[i]["TimeLimit.truncated"]`` is not terminal
     :param batch_length: number of consecutive steps T per sampled chunk
     :param subgoal_shape: shape of the subgoal stored with each step (higher HIEROS levels), or None
+    :param context_dim: floats of replay context per row (module docstring), 0 for none
     """
 
     observations: np.ndarray | dict[str, np.ndarray]  # type: ignore[assignment]
@@ -184,6 +203,7 @@ class SequenceReplayBuffer(ReplayBuffer):
         handle_timeout_termination: bool = True,
         batch_length: int = 64,
         subgoal_shape: tuple[int, ...] | None = None,
+        context_dim: int = 0,
     ):
         # BaseBuffer directly, as DictReplayBuffer does: ReplayBuffer.__init__ would allocate next_observations
         BaseBuffer.__init__(self, buffer_size, observation_space, action_space, device, n_envs=n_envs)
@@ -206,13 +226,16 @@ class SequenceReplayBuffer(ReplayBuffer):
             subgoal_shape = tuple(subgoal_shape)
             if not all(int(d) == d and d >= 1 for d in subgoal_shape):
                 raise ValueError(f"subgoal_shape must be a tuple of positive integers or None, got {subgoal_shape!r}")
+        if isinstance(context_dim, bool) or int(context_dim) != context_dim or context_dim < 0:
+            raise ValueError(f"context_dim must be an integer >= 0 (0: no replay context), got {context_dim!r}")
         self.optimize_memory_usage = False
         self.handle_timeout_termination = handle_timeout_termination
         self.batch_length = int(batch_length)
         self.subgoal_shape = subgoal_shape
+        self.context_dim = int(context_dim)
         # before allocating: the arrays below are lazily committed, so the failure would come much later
         warn_if_replay_exceeds_memory(
-            [self.estimate_nbytes(buffer_size, observation_space, action_space, n_envs, subgoal_shape)]
+            [self.estimate_nbytes(buffer_size, observation_space, action_space, n_envs, subgoal_shape, context_dim)]
         )
 
         rows, n = self.buffer_size, self.n_envs
@@ -229,6 +252,8 @@ class SequenceReplayBuffer(ReplayBuffer):
         self.is_first = np.zeros((rows, n), dtype=bool)
         self.is_terminal = np.zeros((rows, n), dtype=bool)
         self.subgoals = None if subgoal_shape is None else np.zeros((rows, n, *subgoal_shape), dtype=np.float32)
+        self.context = np.zeros((rows, n, self.context_dim), dtype=np.float32) if self.context_dim else None
+        self.has_context = np.zeros((rows, n), dtype=bool)
         # per-stream write heads; a stream expects an episode start until add() has seen its first step
         self.stream_pos = np.zeros(n, dtype=np.int64)
         self.stream_full = np.zeros(n, dtype=bool)
@@ -241,6 +266,7 @@ class SequenceReplayBuffer(ReplayBuffer):
         action_space: spaces.Space,
         n_envs: int = 1,
         subgoal_shape: tuple[int, ...] | None = None,
+        context_dim: int = 0,
     ) -> int:
         """Bytes the arrays of a buffer built with these arguments take once filled (computed without allocating).
 
@@ -249,7 +275,8 @@ class SequenceReplayBuffer(ReplayBuffer):
         :param action_space: action space
         :param n_envs: number of envs
         :param subgoal_shape: subgoal shape or None
-        :return: bytes of observations, actions, rewards, is_first, is_terminal and subgoals
+        :param context_dim: floats of replay context per row
+        :return: bytes of observations, actions, rewards, is_first, is_terminal, subgoals and context
         """
         rows = max(int(buffer_size) // int(n_envs), 1) * int(n_envs)
         subspaces = (
@@ -259,7 +286,15 @@ class SequenceReplayBuffer(ReplayBuffer):
         action_dtype = np.dtype(ReplayBuffer._maybe_cast_dtype(action_space.dtype))
         action = get_action_dim(action_space) * action_dtype.itemsize
         subgoal = 0 if subgoal_shape is None else int(np.prod(subgoal_shape)) * 4
-        return rows * (obs + action + 4 + 1 + 1 + subgoal)
+        context = int(context_dim) * 4 + 1 if context_dim else 1
+        return rows * (obs + action + 4 + 1 + 1 + subgoal + context)
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        # buffers pickled before replay context existed (``save_replay_buffer`` files) load without one
+        self.__dict__.update(state)
+        if "context_dim" not in state:
+            self.context_dim, self.context = 0, None
+            self.has_context = np.zeros((self.buffer_size, self.n_envs), dtype=bool)
 
     # ----------------------------------------------------------------------------------------------------
     # bookkeeping
@@ -292,6 +327,7 @@ class SequenceReplayBuffer(ReplayBuffer):
         self.stream_pos[:] = 0
         self.stream_full[:] = False
         self._expect_first[:] = True
+        self.has_context[:] = False
 
     # ----------------------------------------------------------------------------------------------------
     # writing
@@ -355,6 +391,7 @@ class SequenceReplayBuffer(ReplayBuffer):
         self.is_terminal[rows, envs] = is_terminal
         if self.subgoals is not None:
             self.subgoals[rows, envs] = subgoals
+        self.has_context[rows, envs] = False  # a new step: the stored state belonged to the old one
         self._on_rows_written(rows, envs)
         heads = rows + 1
         wrapped = heads >= self.buffer_size
@@ -518,6 +555,11 @@ class SequenceReplayBuffer(ReplayBuffer):
         """Gather the chunks that start ``ages`` rows after the oldest row of streams ``envs``."""
         starts = self._oldest_rows()[envs] + ages
         rows = (starts[:, None] + np.arange(self.batch_length)) % self.buffer_size  # (B, T)
+        context = None
+        if self.context is not None:
+            before = (starts - 1) % self.buffer_size
+            usable = (ages > 0) & self.has_context[before, envs]  # (B,): row s - 1 is older data of the same stream
+            context = self.to_torch(np.where(usable[:, None], self.context[before, envs], 0.0).astype(np.float32))
         cols = envs[:, None]  # (B, 1)
         obs = {key: array[rows, cols] for key, array in self._obs_arrays().items()}  # (B, T, *shape)
         obs = self._normalize_obs(obs if self._dict_obs else obs[""], env)
@@ -538,7 +580,27 @@ class SequenceReplayBuffer(ReplayBuffer):
             is_first=self.to_torch(is_first, copy=False),
             is_terminal=self.to_torch(self.is_terminal[rows, cols], copy=False),
             subgoals=None if self.subgoals is None else self.to_torch(self.subgoals[rows, cols], copy=False),
+            context=context,
+            index=(rows, envs.copy()),
         )
+
+    def store_context(self, index: tuple[np.ndarray, np.ndarray], context: np.ndarray | th.Tensor) -> None:
+        """Keep the learner's state after each step of a sampled batch (module docstring, *Replay context*).
+
+        Call it before new steps are added (as HIEROS does, right after the update on that batch): a row written
+        since the draw would keep the state of the step it held before.
+
+        :param index: :attr:`SequenceSamples.index` of the batch, ``(rows (B, T), streams (B,))``
+        :param context: ``(B, T, context_dim)`` the packed states after each step of the batch
+        """
+        if self.context is None:
+            raise ValueError("this buffer keeps no replay context (context_dim=0); build it with context_dim > 0")
+        rows, envs = index
+        values = context.detach().cpu().numpy() if isinstance(context, th.Tensor) else np.asarray(context)
+        values = _check_shape(values, (*rows.shape, self.context_dim), "context")
+        cols = np.broadcast_to(envs[:, None], rows.shape)
+        self.context[rows, cols] = values
+        self.has_context[rows, cols] = True
 
     def _get_samples(self, batch_inds: np.ndarray, env: VecNormalize | None = None):  # type: ignore[override]
         raise NotImplementedError("SequenceReplayBuffer returns chunks: use sample(batch_size)")
@@ -586,6 +648,7 @@ class ETBSReplayBuffer(SequenceReplayBuffer):
     :param count_temperature: softmax temperature of the "count" and "meanfield" modes, in draws per chunk start
     :param draws_per_insert: "meanfield" only (required there): chunks drawn per step added to a stream, e.g.
         ``batch_size * gradient_steps / (train_freq * n_envs)`` for SB3's training loop
+    :param context_dim: floats of replay context per row (see :class:`SequenceReplayBuffer`), 0 for none
     """
 
     def __init__(
@@ -603,6 +666,7 @@ class ETBSReplayBuffer(SequenceReplayBuffer):
         mode: str = "etbs",
         count_temperature: float = 1.0,
         draws_per_insert: float | None = None,
+        context_dim: int = 0,
     ):
         if mode not in ETBS_BUFFER_MODES:
             raise ValueError(f"mode must be one of {ETBS_BUFFER_MODES}, got {mode!r}")
@@ -620,6 +684,7 @@ class ETBSReplayBuffer(SequenceReplayBuffer):
             handle_timeout_termination=handle_timeout_termination,
             batch_length=batch_length,
             subgoal_shape=subgoal_shape,
+            context_dim=context_dim,
         )
         self.temperature = float(temperature)
         self.mode = mode

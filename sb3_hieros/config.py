@@ -281,6 +281,11 @@ class HierosConfig:
     :param learning_starts: environment steps of random actions before training starts
     :param etbs_temperature: tau of ETBS (thesis 4.5, eq. 4.21)
     :param replay: ``"etbs"`` (default), ``"uniform"``, ``"reference"`` or ``"count"`` (ablation 5.3.3)
+    :param replay_context: False (default, thesis and reference code): every sampled chunk starts the world model
+        from zeros, so training sees at most ``batch_length`` steps of history while acting carries the state over
+        whole episodes. True: each level's replay keeps the posterior state of every trained row and a chunk starts
+        from the state stored for the row before it (DreamerV3's replay context; :mod:`sb3_hieros.buffers`), at
+        :meth:`~sb3_hieros.agent.world_model.WorldModel.context_dim` floats per stored step
     :param hierarchical_world_models: True (default): every level has its own world model and imagines in it
         (hierarchical imagination). False (ablation 5.3.1): only level 0 has a world model; level i >= 1 observes the
         last ``k**i`` world states of level 0 and all levels are trained together in level 0's imagination, where
@@ -312,6 +317,7 @@ class HierosConfig:
     learning_starts: int = 1024
     etbs_temperature: float = 0.3
     replay: str = "etbs"
+    replay_context: bool = False
     hierarchical_world_models: bool = True
     higher_level_input: str = "all"
     decoded_subgoal_input: bool = False
@@ -333,7 +339,12 @@ class HierosConfig:
         _check_choice(self, "replay", ("etbs", "uniform", "reference", "count"))
         _check_choice(self, "higher_level_input", HIGHER_LEVEL_INPUTS)
         _check_choice(self, "extrinsic_reward_levels", EXTRINSIC_REWARD_LEVELS)
-        for name in ("hierarchical_world_models", "decoded_subgoal_input", "update_subgoals_in_imagination"):
+        for name in (
+            "replay_context",
+            "hierarchical_world_models",
+            "decoded_subgoal_input",
+            "update_subgoals_in_imagination",
+        ):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"HierosConfig.{name} must be a bool, got {getattr(self, name)!r}")
         self._check_ablation_combinations()

@@ -413,6 +413,7 @@ class HIEROS(OffPolicyAlgorithm):
         if issubclass(buffer_class, ETBSReplayBuffer):
             kwargs.update(etbs)
         kwargs.update(self.replay_buffer_kwargs)
+        contexts = [level.world_model.context_dim if cfg.replay_context else 0 for level in levels]
         # one warning for all levels together, before anything is allocated (then not again per buffer)
         spaces_per_level = [(self.observation_space, self.action_space)] + [
             (level.observation_space, level.action_space) for level in levels[1:]
@@ -424,6 +425,7 @@ class HIEROS(OffPolicyAlgorithm):
                 act_space,
                 self.n_envs,
                 subgoal_shape if i < cfg.n_levels - 1 else None,
+                contexts[i],
             )
             for i, (obs_space, act_space) in enumerate(spaces_per_level)
         ]
@@ -431,7 +433,7 @@ class HIEROS(OffPolicyAlgorithm):
         with warnings.catch_warnings():
             if warned:
                 warnings.filterwarnings("ignore", message="The replay buffer needs about")
-            return self._allocate_replay_buffers(buffer_class, kwargs, levels, subgoal_shape, etbs)
+            return self._allocate_replay_buffers(buffer_class, kwargs, levels, subgoal_shape, etbs, contexts)
 
     def _allocate_replay_buffers(
         self,
@@ -440,8 +442,9 @@ class HIEROS(OffPolicyAlgorithm):
         levels: list[Any],
         subgoal_shape: tuple[int, ...],
         etbs: dict[str, Any],
+        contexts: list[int],
     ) -> SequenceReplayBuffer:
-        """Build the buffers :meth:`_make_replay_buffers` planned."""
+        """Build the buffers :meth:`_make_replay_buffers` planned (``contexts``: replay-context size per level)."""
         assert self.config is not None
         cfg = self.config
         buffer = buffer_class(
@@ -451,6 +454,7 @@ class HIEROS(OffPolicyAlgorithm):
             device=self.device,
             n_envs=self.n_envs,
             optimize_memory_usage=False,
+            **({"context_dim": contexts[0]} if contexts[0] else {}),  # custom buffer classes may not know it
             **kwargs,
         )
         buffer.higher_levels = [  # type: ignore[attr-defined]
@@ -462,6 +466,7 @@ class HIEROS(OffPolicyAlgorithm):
                 n_envs=self.n_envs,
                 batch_length=cfg.batch_length,
                 subgoal_shape=subgoal_shape if i < cfg.n_levels - 1 else None,
+                context_dim=contexts[i],
                 **etbs,
             )
             for i in range(1, len(levels))
@@ -745,6 +750,7 @@ class HIEROS(OffPolicyAlgorithm):
                 samples = self._prepare_samples(0, buffers[0].sample(batch_size, env=self._vec_normalize_env))
                 for i, metrics in enumerate(train_shared_hierarchy(self.policy.levels, samples, cfg)):
                     self._record_level(i, metrics)
+                self._store_context(buffers[0], samples, 0)
                 self._n_updates += 1
                 continue
             for i, buffer in enumerate(buffers):
@@ -754,6 +760,7 @@ class HIEROS(OffPolicyAlgorithm):
                 samples = buffer.sample(batch_size, env=self._vec_normalize_env if i == 0 else None)
                 metrics = self.policy.subactor(i).train_step(self._prepare_samples(i, samples))
                 self._record_level(i, metrics)
+                self._store_context(buffer, samples, i)
             self._n_updates += 1
         self.policy.set_training_mode(False)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
@@ -761,6 +768,12 @@ class HIEROS(OffPolicyAlgorithm):
             self.logger.record(f"train/level{i}/n_updates", count, exclude="tensorboard")
         for i, count in enumerate(self._skipped_updates or []):
             self.logger.record(f"train/level{i}/skipped_updates", count)
+
+    def _store_context(self, buffer: SequenceReplayBuffer, samples: SequenceSamples, level: int) -> None:
+        """Hand level ``level``'s posterior states of the batch just trained on back to its replay (replay context)."""
+        context = self.policy.subactor(level).last_context
+        if samples.context is not None and samples.index is not None and context is not None:
+            buffer.store_context(samples.index, context)
 
     def _count_nonfinite(self, level: int, metrics: dict[str, float]) -> None:
         """Count an update of ``level`` with a skipped (non-finite) optimiser step; stop after too many in a row.

@@ -314,6 +314,46 @@ def test_dict_observations_and_uint8_images():
         buffer.add({"vec": ids}, {"vec": ids}, np.zeros(2), np.zeros(2), np.zeros(2), [{}, {}])
 
 
+@pytest.mark.parametrize("buffer_class", [SequenceReplayBuffer, ETBSReplayBuffer])
+def test_replay_context_is_the_stored_state_of_the_row_before(buffer_class):
+    buffer = buffer_class(2 * 30, OBS_SPACE, ACT_SPACE, n_envs=2, batch_length=4, context_dim=2)
+    feeder = fill(buffer, 100, n_envs=2, episode_length=(5, 3, 11, 4))
+    assert buffer.stream_full.all() and not buffer.has_context.any()
+    samples = buffer.sample(64)
+    assert samples.context.shape == (64, 2) and not samples.context.any()  # nothing stored yet: zeros
+    # store each row's (env, id) as its "state"
+    buffer.store_context(samples.index, samples.observations)
+    rows, envs = samples.index
+    assert buffer.has_context[rows, envs[:, None]].all()
+    for _ in range(20):
+        samples = buffer.sample(64)
+        ids = samples.observations[:, 0, 1].numpy()
+        context = samples.context.numpy()
+        rows, envs = samples.index
+        oldest = (rows[:, 0] == buffer.stream_pos[envs]) & buffer.stream_full[envs]
+        has = context.any(-1)
+        # where there is a context it is the previous row of the same stream, never one across the write head
+        np.testing.assert_array_equal(context[has, 0], envs[has])
+        np.testing.assert_array_equal(context[has, 1], ids[has] - 1)
+        assert not has[oldest].any()
+        buffer.store_context(samples.index, samples.observations)
+    assert has.any()
+    # a new step in a row drops its stored state
+    head = buffer.stream_pos.copy()
+    feeder.step(buffer)
+    assert not buffer.has_context[head, np.arange(2)].any()
+    with pytest.raises(ValueError, match="context has shape"):
+        buffer.store_context(samples.index, np.zeros((64, 4, 3)))
+    plain = buffer_class(60, OBS_SPACE, ACT_SPACE, batch_length=4)
+    fill(plain, 10)
+    batch = plain.sample(2)
+    assert batch.context is None
+    with pytest.raises(ValueError, match="keeps no replay context"):
+        plain.store_context(batch.index, np.zeros((2, 4, 1)))
+    with pytest.raises(ValueError, match="context_dim must be an integer >= 0"):
+        buffer_class(60, OBS_SPACE, ACT_SPACE, batch_length=4, context_dim=-1)
+
+
 def test_sampling_is_reproducible_under_global_seed():
     buffer = ETBSReplayBuffer(100, OBS_SPACE, ACT_SPACE, n_envs=2, batch_length=4)
     fill(buffer, 40, n_envs=2, episode_length=(6,))
@@ -338,7 +378,10 @@ def test_pickle_round_trip(buffer_class, kwargs):
     a = buffer.sample(8)
     set_random_seed(3)
     b = restored.sample(8)
-    for x, y in zip(a, b, strict=True):
+    for x, y in zip(a[:6], b[:6], strict=True):
+        np.testing.assert_array_equal(x, y)
+    assert a.context is None and b.context is None
+    for x, y in zip(a.index, b.index, strict=True):
         np.testing.assert_array_equal(x, y)
     feeder.step(restored, subgoal=True)  # keeps working after loading
     check_chunks(restored.sample(16), feeder)

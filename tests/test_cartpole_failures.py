@@ -46,3 +46,23 @@ def test_refuses_other_models_and_bad_counts(tmp_path, cartpole_model):
     model.save(tmp_path / "pendulum.zip")
     with pytest.raises(ValueError, match="not trained on CartPole-v1"):
         cartpole_failures.main([str(tmp_path / "pendulum.zip")])
+
+
+def test_reset_every_restarts_the_agent_state(cartpole_model, monkeypatch):
+    model = HIEROS.load(cartpole_model, device="cpu")
+    starts = []
+    predict = model.predict
+
+    def spy(obs, state=None, episode_start=None, deterministic=False):
+        starts.append(bool(episode_start[0]))
+        return predict(obs, state=state, episode_start=episode_start, deterministic=deterministic)
+
+    monkeypatch.setattr(model, "predict", spy)
+    obs, _, _ = cartpole_failures.play(model, gym.make("CartPole-v1"), 0, True, reset_every=3)
+    assert len(starts) == len(obs) > 3
+    assert starts == [t % 3 == 0 for t in range(len(obs))]
+    starts.clear()
+    cartpole_failures.play(model, gym.make("CartPole-v1"), 0, True)
+    assert starts[0] and not any(starts[1:])
+    with pytest.raises(ValueError, match="--reset-every must be >= 0"):
+        cartpole_failures.main([str(cartpole_model), "--reset-every", "-1"])

@@ -65,6 +65,8 @@ def test_unknown_preset():
 def test_hieros_config_rejects_bad_replay():
     with pytest.raises(ValueError, match="replay"):
         HierosConfig(replay="prioritized")
+    with pytest.raises(ValueError, match=r"HierosConfig\.replay_context must be a bool, got 1"):
+        HierosConfig(replay_context=1)
 
 
 def test_world_model_lr_zero_is_a_frozen_model_and_negative_is_refused():

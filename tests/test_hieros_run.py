@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
-from hieros_helpers import SmallDictEnv, tiny_kwargs
+from hieros_helpers import TINY_OVERRIDES, SmallDictEnv, tiny_kwargs
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.envs import FakeImageEnv, IdentityEnv
 from stable_baselines3.common.evaluation import evaluate_policy
@@ -207,6 +207,35 @@ def test_evaluate_policy():
     assert mean > 0 and std >= 0
     rewards, lengths = evaluate_policy(model, eval_env, n_eval_episodes=2, return_episode_rewards=True)
     assert len(rewards) == len(lengths) == 2
+
+
+@pytest.mark.parametrize("hierarchical", [True, False])
+def test_replay_context_is_stored_and_trained_from(hierarchical, monkeypatch):
+    overrides = {**TINY_OVERRIDES, "replay_context": True, "hierarchical_world_models": hierarchical}
+    model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(config_overrides=overrides, train_ratio=16.0))
+    model.learn(120)
+    buffers = model.level_buffers()
+    assert len(buffers) == (2 if hierarchical else 1)
+    for i, buffer in enumerate(buffers):
+        assert buffer.context_dim == model.policy.subactor(i).world_model.context_dim > 0
+        assert buffer.has_context.any(), f"level {i} stored no context"
+    wm = model.policy.subactor(0).world_model
+    starts = []
+    train_step = wm.train_step
+
+    def spy(samples, optimizer, scheduler=None, state=None):
+        starts.append(state)
+        return train_step(samples, optimizer, scheduler, state)
+
+    monkeypatch.setattr(wm, "train_step", spy)
+    model.learn(40, reset_num_timesteps=False)
+    assert starts and all(state is not None for state in starts)
+    assert any(state.seq.abs().sum() > 0 for state in starts), "no chunk started from a stored state"
+    # off (the default): no context kept, every chunk starts from zeros
+    plain = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs())
+    plain.learn(60)
+    assert all(b.context is None and not b.has_context.any() for b in plain.level_buffers())
+    assert plain.policy.subactor(0).last_context is None
 
 
 def test_seeded_runs_are_identical():

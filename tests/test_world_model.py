@@ -81,6 +81,29 @@ def test_observe_matches_obs_step_with_resets(kind):
 
 
 @pytest.mark.parametrize("kind", KINDS)
+def test_packed_context_continues_a_chunk(kind):
+    model = vector_model(kind)
+    obs, actions, is_first = random_chunk(3, 10, reset_at=((1, 6),))
+    whole, _ = model.observe(obs, actions, is_first, deterministic=True)
+    first, _ = model.observe(obs[:, :5], actions[:, :5], is_first[:, :5], deterministic=True)
+    context = model.pack_context(first)  # (B, T, C), as replay stores it
+    assert context.shape == (3, 5, model.context_dim) and context.dtype == th.float32 and not context.requires_grad
+    # the second half from the unpacked context of row 4 equals the same rows of the whole chunk
+    second, _ = model.observe(
+        obs[:, 5:], actions[:, 5:], is_first[:, 5:], state=model.unpack_context(context[:, -1]), deterministic=True
+    )
+    tail = whole.select((slice(None), slice(5, None)))
+    for name in ("stoch", "deter", "seq", "logits", "prior_logits"):
+        assert th.allclose(getattr(second, name), getattr(tail, name), atol=1e-5), name
+    # zeros unpack to the initial state (observe reads only z and the memory)
+    zero = model.unpack_context(th.zeros(3, model.context_dim))
+    initial = model.initial_state(3)
+    assert th.equal(zero.stoch, initial.stoch) and th.equal(zero.seq, initial.seq)
+    with pytest.raises(ValueError, match=rf"context must have shape \(B, {model.context_dim}\)"):
+        model.unpack_context(th.zeros(3, model.context_dim + 1))
+
+
+@pytest.mark.parametrize("kind", KINDS)
 def test_reset_equals_fresh_start(kind):
     model = vector_model(kind)
     obs, actions, is_first = random_chunk(2, 6, reset_at=((0, 3), (1, 3)))

@@ -378,6 +378,8 @@ class Subactor(nn.Module):
         #: ablation 5.3.9: ``fn(window, subgoal, carry) -> (new_subgoal, carry)`` called every ``subgoal_interval``
         #: imagined steps (see :meth:`_imagine_updating_subgoals`); None holds the replay subgoal fixed (thesis default)
         self.imagination_subgoal_fn: Callable[[th.Tensor, th.Tensor, Any], tuple[th.Tensor, Any]] | None = None
+        #: packed posterior states (B, T, C) of the last :meth:`train_step` on a batch with replay context, else None
+        self.last_context: th.Tensor | None = None
 
         self.wm_optimizer = world_model_optimizer(self.world_model)
         self.wm_scheduler: th.optim.lr_scheduler.LRScheduler | None = world_model_lr_scheduler(
@@ -731,6 +733,16 @@ class Subactor(nn.Module):
         targets = th.stack([target] + [planned[t // k] for t in range(horizon)], 0)
         return (*rollout, targets)
 
+    def context_start(self, samples: Any) -> LatentState | None:
+        """The world state before each chunk of a batch, from its replay context (``samples.context``, see
+        :mod:`sb3_hieros.buffers`), or None (start from zeros) for a batch without one.
+
+        :param samples: a batch of B chunks
+        :return: state of batch shape (B,) or None
+        """
+        context = getattr(samples, "context", None)
+        return None if context is None else self.world_model.unpack_context(context)
+
     def train_step(self, samples: Any) -> dict[str, float]:
         """One training iteration of this level on a batch of chunks (Algorithm 2, thesis 4.6.2).
 
@@ -758,14 +770,19 @@ class Subactor(nn.Module):
 
         :param samples: :class:`~sb3_hieros.buffers.SequenceSamples` (B, T, ...): ``actions[:, t]`` = a_{t-1} (float
             vectors or, for discrete spaces, indices, see :meth:`action_vectors`); ``subgoals`` (B, T, n_cat *
-            n_classes) or (B, T, n_cat, n_classes) required unless this is the top level
+            n_classes) or (B, T, n_cat, n_classes) required unless this is the top level; with a ``context``
+            the world model starts each chunk there (:meth:`context_start`) and :attr:`last_context` holds the
+            packed posterior states for the buffer's ``store_context``
         :return: metrics
         """
         batch, subgoals = self._check_samples(samples)
         tensors: dict[str, th.Tensor] = {}
 
-        # (1) world model
-        wm_metrics, post = self.world_model.train_step(batch, self.wm_optimizer, self.wm_scheduler)
+        # (1) world model, from the replay context where the batch has one
+        wm_metrics, post = self.world_model.train_step(
+            batch, self.wm_optimizer, self.wm_scheduler, self.context_start(samples)
+        )
+        self.last_context = None if getattr(samples, "context", None) is None else self.world_model.pack_context(post)
         metrics = {f"wm/{k}": float(v) for k, v in wm_metrics.items()}
         metrics["nonfinite/world_model"] = metrics.pop("wm/nonfinite")
         metrics["wm/lr"] = float(self.wm_optimizer.param_groups[0]["lr"])

@@ -669,6 +669,49 @@ class WorldModel(nn.Module):
         """
         raise NotImplementedError
 
+    #: whether ``deter`` is the recurrent memory itself (RSSM), so :meth:`unpack_context` restores it from ``seq``
+    _deter_is_seq = False
+
+    @property
+    def context_dim(self) -> int:
+        """Floats per step in :meth:`pack_context`: z_t plus the sequence model's memory (complex parts as pairs)."""
+        seq = self.initial_state(1).seq
+        return self.stoch_dim + seq[0].numel() * (2 if seq.is_complex() else 1)
+
+    def pack_context(self, state: LatentState) -> th.Tensor:
+        """What :meth:`observe` needs to continue after ``state`` (z_t and the recurrent memory) as one float vector
+        per step, to be stored in replay and handed back through :meth:`unpack_context` (replay context: a chunk then
+        starts from the state its previous step had when last trained on, as in acting, not from zeros).
+
+        :param state: states of batch shape ``lead``
+        :return: (*lead, :attr:`context_dim`) float32, detached
+        """
+        lead = tuple(state.batch_shape)
+        seq = th.view_as_real(state.seq) if state.seq.is_complex() else state.seq
+        return th.cat([state.stoch.detach().float(), seq.detach().reshape(*lead, -1).float()], -1)
+
+    def unpack_context(self, context: th.Tensor) -> LatentState:
+        """The state a :meth:`pack_context` vector stands for, as the ``state`` argument of :meth:`observe`.
+
+        Only z_t and the recurrent memory are restored (all that :meth:`observe` reads); for S5WM ``deter`` is left
+        at zero and the logits uniform. All-zero vectors give :meth:`initial_state`.
+
+        :param context: (B, :attr:`context_dim`)
+        :return: state of batch shape (B,)
+        """
+        if not isinstance(context, th.Tensor) or context.dim() != 2 or context.shape[-1] != self.context_dim:
+            shape = tuple(context.shape) if isinstance(context, th.Tensor) else type(context).__name__
+            raise ValueError(f"context must have shape (B, {self.context_dim}), got {shape}")
+        template = self.initial_state(int(context.shape[0]))
+        context = context.to(template.stoch.device, th.float32)
+        stoch, rest = context[:, : self.stoch_dim], context[:, self.stoch_dim :]
+        if template.seq.is_complex():
+            seq = th.view_as_complex(rest.reshape(*template.seq.shape, 2).contiguous())
+        else:
+            seq = rest.reshape(template.seq.shape)
+        deter = seq if self._deter_is_seq else template.deter
+        return template._replace(stoch=stoch, deter=deter, seq=seq)
+
     def observe(
         self,
         observations: th.Tensor | Mapping[str, th.Tensor],
@@ -855,6 +898,7 @@ class WorldModel(nn.Module):
         samples: Any,
         optimizer: th.optim.Optimizer,
         scheduler: th.optim.lr_scheduler.LRScheduler | None = None,
+        state: LatentState | None = None,
     ) -> tuple[dict[str, float], LatentState]:
         """One gradient step on :meth:`loss` with gradient-norm clipping at ``config.grad_clip``.
 
@@ -864,9 +908,10 @@ class WorldModel(nn.Module):
         :param samples: batch of chunks (see :meth:`loss`)
         :param optimizer: e.g. from :func:`world_model_optimizer`
         :param scheduler: optional learning-rate schedule stepped after the update
+        :param state: state before row 0 (e.g. :meth:`unpack_context` of the replay context), or None for zeros
         :return: metrics (with ``grad_norm`` and ``nonfinite``) and the detached posterior states (imagination starts)
         """
-        loss, metrics, post = self.loss(samples)
+        loss, metrics, post = self.loss(samples, state)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         grad_norm = nn.utils.clip_grad_norm_(self.parameters(), self.config.grad_clip)
@@ -1101,6 +1146,7 @@ class RSSMWorldModel(WorldModel):
     """
 
     kind = "rssm"
+    _deter_is_seq = True
 
     def __init__(
         self,
