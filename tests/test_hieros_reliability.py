@@ -232,8 +232,8 @@ def _poison_world_model(model: HIEROS, level: int, n_bad: int | None) -> None:
     loss_fn = wm.loss
     calls = [0]
 
-    def loss(samples: Any) -> Any:
-        value, metrics, post = loss_fn(samples)
+    def loss(samples: Any, state: Any = None) -> Any:
+        value, metrics, post = loss_fn(samples, state)
         calls[0] += 1
         if n_bad is None or calls[0] <= n_bad:
             value = value * float("nan")
@@ -367,22 +367,26 @@ def test_predict_wrong_shape_or_foreign_state():
 # ------------------------------------------------------------------------------------------------ memory
 
 
-def test_replay_memory_estimate_and_warning(monkeypatch):
-    model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(n_levels=3))
+@pytest.mark.parametrize("replay_context", [False, True])
+def test_replay_memory_estimate_and_warning(monkeypatch, replay_context):
+    overrides = {**TINY_OVERRIDES, "replay_context": replay_context}
+    model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(n_levels=3, config_overrides=overrides))
     for level, buffer in enumerate(model.level_buffers()):
         arrays = [buffer.observations, buffer.actions, buffer.rewards, buffer.is_first, buffer.is_terminal]
-        actual = sum(a.nbytes for a in arrays) + (0 if buffer.subgoals is None else buffer.subgoals.nbytes)
+        arrays += [a for a in (buffer.subgoals, buffer.context, buffer.has_context) if a is not None]
+        assert (buffer.context is not None) == replay_context
         estimate = SequenceReplayBuffer.estimate_nbytes(
             model._level_buffer_size(level),
             buffer.observation_space,
             buffer.action_space,
             buffer.n_envs,
             buffer.subgoal_shape,
+            buffer.context_dim,
         )
-        assert estimate == actual, level
+        assert estimate == sum(a.nbytes for a in arrays), level
     dict_env = SmallDictEnv()
     buffer = SequenceReplayBuffer(64, dict_env.observation_space, dict_env.action_space, n_envs=2, batch_length=4)
-    actual = sum(a.nbytes for a in buffer.observations.values()) + buffer.actions.nbytes + 64 * (4 + 1 + 1)
+    actual = sum(a.nbytes for a in buffer.observations.values()) + buffer.actions.nbytes + 64 * (4 + 1 + 1 + 1)
     assert SequenceReplayBuffer.estimate_nbytes(64, dict_env.observation_space, dict_env.action_space, 2) == actual
 
     monkeypatch.setattr(buffers_module, "available_memory", lambda: 10_000)
