@@ -40,7 +40,8 @@ Sampling
 ``sample(batch_size)`` returns :class:`SequenceSamples` of ``batch_size`` chunks of ``batch_length``
 consecutive rows, each from one stream, shaped ``(B, T, ...)``. A chunk never crosses a stream's write head
 (so never joins the newest and the oldest rows) but may cross episode borders: ``is_first`` marks them, and is
-**not** forced to True at ``t = 0`` (the world model starts every chunk from its initial state anyway).
+**not** forced to True at ``t = 0`` (the world model starts every chunk from its initial state anyway, or from
+the replay context below).
 The stream of a chunk is drawn in proportion to its number of valid chunk starts, so every valid
 ``(stream, start)`` pair is equally likely with uniform selection. Random numbers come from numpy's
 **global** state (``np.random.random_sample``), as SB3's buffers draw from ``np.random``, so

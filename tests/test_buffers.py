@@ -352,6 +352,12 @@ def test_replay_context_is_the_stored_state_of_the_row_before(buffer_class):
         plain.store_context(batch.index, np.zeros((2, 4, 1)))
     with pytest.raises(ValueError, match="context_dim must be an integer >= 0"):
         buffer_class(60, OBS_SPACE, ACT_SPACE, batch_length=4, context_dim=-1)
+    # a buffer pickled before replay context existed loads as one without it and keeps working
+    old_state = {k: v for k, v in plain.__dict__.items() if k not in ("context_dim", "context", "has_context")}
+    old = buffer_class.__new__(buffer_class)
+    old.__setstate__(old_state)
+    fill(old, 5)
+    assert old.context is None and old.sample(2).context is None and not old.has_context.any()
 
 
 def test_sampling_is_reproducible_under_global_seed():
