@@ -15,6 +15,7 @@ def test_paper_preset_matches_thesis_table():
     assert (wm.s5_model_dim, wm.s5_state_dim, wm.s5_hippo_blocks, wm.s5_layers) == (256, 128, 4, 8)
     assert (wm.dyn_scale, wm.rep_scale, wm.deter_dim) == (0.5, 0.1, 256)
     assert (wm.stoch_groups, wm.stoch_classes, wm.lr, wm.weight_decay) == (32, 32, 1e-4, 0.0)
+    assert not cfg.replay_context  # the thesis trains every chunk from zeros
 
 
 def test_small_preset_is_smaller_everywhere():
@@ -22,6 +23,7 @@ def test_small_preset_is_smaller_everywhere():
     assert small.world_model.s5_layers < paper.world_model.s5_layers
     assert small.world_model.deter_dim < paper.world_model.deter_dim
     assert small.train_ratio < paper.train_ratio
+    assert small.replay_context  # the CPU preset trains from the replay context
 
 
 def test_presets_are_fresh_copies():

@@ -231,8 +231,9 @@ def test_replay_context_is_stored_and_trained_from(hierarchical, monkeypatch):
     model.learn(40, reset_num_timesteps=False)
     assert starts and all(state is not None for state in starts)
     assert any(state.seq.abs().sum() > 0 for state in starts), "no chunk started from a stored state"
-    # off (the default): no context kept, every chunk starts from zeros
-    plain = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs())
+    # off (the paper preset's and HierosConfig's default): no context kept, every chunk starts from zeros
+    plain_overrides = {**TINY_OVERRIDES, "replay_context": False}
+    plain = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(config_overrides=plain_overrides))
     plain.learn(60)
     assert all(b.context is None and not b.has_context.any() for b in plain.level_buffers())
     assert plain.policy.subactor(0).last_context is None
