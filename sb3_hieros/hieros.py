@@ -771,8 +771,8 @@ class HIEROS(OffPolicyAlgorithm):
 
     def _store_context(self, buffer: SequenceReplayBuffer, samples: SequenceSamples, level: int) -> None:
         """Hand level ``level``'s posterior states of the batch just trained on back to its replay (replay context)."""
-        context = self.policy.subactor(level).last_context
-        if samples.context is not None and samples.index is not None and context is not None:
+        context = self.policy.subactor(level).last_context  # None unless the batch had a context
+        if context is not None and samples.index is not None:
             buffer.store_context(samples.index, context)
 
     def _count_nonfinite(self, level: int, metrics: dict[str, float]) -> None:

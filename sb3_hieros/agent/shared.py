@@ -263,11 +263,7 @@ def train_shared_hierarchy(
         None,
     )
     # (1) world model of level 0
-    wm_metrics, post = wm.train_step(batch, level0.wm_optimizer, level0.wm_scheduler, level0.context_start(samples))
-    level0.last_context = None if samples.context is None else wm.pack_context(post)
-    metrics0: dict[str, float] = {f"wm/{key}": float(v) for key, v in wm_metrics.items()}
-    metrics0["nonfinite/world_model"] = metrics0.pop("wm/nonfinite")
-    metrics0["wm/lr"] = float(level0.wm_optimizer.param_groups[0]["lr"])
+    metrics0, post = level0.world_model_step(batch, samples)
 
     # (2) joint imagination from every posterior state
     start = post.flatten_batch()

@@ -743,6 +743,23 @@ class Subactor(nn.Module):
         context = getattr(samples, "context", None)
         return None if context is None else self.world_model.unpack_context(context)
 
+    def world_model_step(self, batch: SequenceSamples, samples: Any) -> tuple[dict[str, float], LatentState]:
+        """Step 1 of :meth:`train_step` (also used by the shared-world-model hierarchy): one world-model update on
+        ``batch``, started from the replay context of ``samples`` (:meth:`context_start`), whose packed posterior
+        states it keeps in :attr:`last_context` (None without a context).
+
+        :param batch: the checked batch the world model trains on (previous actions as float vectors)
+        :param samples: the batch as sampled (its ``context``, if any)
+        :return: metrics ``wm/*`` (with ``wm/lr``) and ``nonfinite/world_model``, and the detached posterior states
+        """
+        wm = self.world_model
+        wm_metrics, post = wm.train_step(batch, self.wm_optimizer, self.wm_scheduler, self.context_start(samples))
+        self.last_context = None if getattr(samples, "context", None) is None else wm.pack_context(post)
+        metrics = {f"wm/{k}": float(v) for k, v in wm_metrics.items()}
+        metrics["nonfinite/world_model"] = metrics.pop("wm/nonfinite")
+        metrics["wm/lr"] = float(self.wm_optimizer.param_groups[0]["lr"])
+        return metrics, post
+
     def train_step(self, samples: Any) -> dict[str, float]:
         """One training iteration of this level on a batch of chunks (Algorithm 2, thesis 4.6.2).
 
@@ -779,13 +796,7 @@ class Subactor(nn.Module):
         tensors: dict[str, th.Tensor] = {}
 
         # (1) world model, from the replay context where the batch has one
-        wm_metrics, post = self.world_model.train_step(
-            batch, self.wm_optimizer, self.wm_scheduler, self.context_start(samples)
-        )
-        self.last_context = None if getattr(samples, "context", None) is None else self.world_model.pack_context(post)
-        metrics = {f"wm/{k}": float(v) for k, v in wm_metrics.items()}
-        metrics["nonfinite/world_model"] = metrics.pop("wm/nonfinite")
-        metrics["wm/lr"] = float(self.wm_optimizer.param_groups[0]["lr"])
+        metrics, post = self.world_model_step(batch, samples)
 
         # (2) imagination from every posterior state (or imag_start_fraction of them), subgoal of the row held fixed
         start = post.flatten_batch()  # (N,) with N = B*T, detached
