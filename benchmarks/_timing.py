@@ -23,6 +23,7 @@ class Timing:
     min: float
     median: float
     reps: int
+    total: float = float("nan")  #: sum over the timed calls
 
 
 def time_interleaved(
@@ -48,7 +49,7 @@ def time_interleaved(
             start = time.perf_counter()
             fn()
             samples[name].append(time.perf_counter() - start)
-    return {name: Timing(min(s), statistics.median(s), len(s)) for name, s in samples.items()}
+    return {name: Timing(min(s), statistics.median(s), len(s), sum(s)) for name, s in samples.items()}
 
 
 def environment_header() -> str:

@@ -12,13 +12,18 @@ the updates of every level at the preset's train ratio. Two builds with the same
 (``world_model.kind="rssm"``), are first filled with ``learning_starts`` random steps (untimed), then timed in
 alternating segments of ``--segment`` environment steps (``learn(segment, reset_num_timesteps=False)``), one untimed
 warm-up segment each first. The thesis reports S5WM 1.59x as fast as RSSM on a GPU; the goal here is >= 1.5x.
+During the timed segments a :class:`PhaseClock` splits each build's wall time into acting, world-model updates,
+imagination, actor-critic + autoencoder updates, replay sampling and the rest (environment, buffer writes), so the
+table shows which parts the sequence model can speed up at all.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import time
+from collections import defaultdict
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -213,6 +218,79 @@ def build_agent(game: str, world_model: str, seed: int, learning_starts: int | N
     )
 
 
+class PhaseClock:
+    """Wall time of the parts of ``HIEROS.learn``, measured by wrapping methods of one model's instances.
+
+    Wrapped (instance attributes shadowing the methods; benchmark use only, the model is not saved): the model's
+    ``_sample_action`` (acting: every level's observation step and actor) and ``train``, and each level's
+    ``train_step``, ``world_model_step`` and ``_imagine`` where it has them. :meth:`phases` derives disjoint parts
+    of the wall time from them. In the shared-world-model ablation (no level ``train_step``) level 0's world-model
+    step is still counted as ``world_model``; its imagination and actor-critic updates fall into
+    ``replay_and_rest``.
+
+    :param model: a ``HIEROS`` model
+    """
+
+    PHASES = ("acting", "world_model", "imagination", "actor_critic_ae", "replay_and_rest", "env_and_rest")
+
+    def __init__(self, model: Any) -> None:
+        self.seconds: defaultdict[str, float] = defaultdict(float)
+        self._in_train_step = False
+        self._wrap(model, "_sample_action", "acting")
+        self._wrap(model, "train", "train")
+        for level in model.policy.levels:
+            for name, key in (
+                ("train_step", "train_step"),
+                ("world_model_step", "world_model"),
+                ("_imagine", "imagination"),
+            ):
+                if hasattr(level, name):  # the shared-world-model ablation's levels have none of them
+                    self._wrap(level, name, key)
+
+    def _wrap(self, owner: Any, name: str, key: str) -> None:
+        method = getattr(owner, name)
+
+        @functools.wraps(method)
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            outer = self._in_train_step
+            self._in_train_step = outer or key == "train_step"
+            start = time.perf_counter()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                elapsed = time.perf_counter() - start
+                self._in_train_step = outer
+                self.seconds[key] += elapsed
+                if outer and key != "train_step":
+                    self.seconds[f"{key} in train_step"] += elapsed
+
+        object.__setattr__(owner, name, timed)
+
+    def reset(self) -> None:
+        """Forget the time measured so far."""
+        self.seconds.clear()
+
+    def phases(self, wall: float) -> dict[str, float]:
+        """Disjoint parts of ``wall`` seconds of ``learn``, in seconds.
+
+        :param wall: wall time of the ``learn`` calls measured since the last :meth:`reset`
+        :return: :data:`PHASES` -> seconds: ``actor_critic_ae`` = the levels' ``train_step`` less the world-model
+            steps and imaginations inside it; ``replay_and_rest`` = ``train`` less ``train_step`` and less any
+            world-model step or imagination outside it (replay sampling, replay context, logging);
+            ``env_and_rest`` = ``wall`` less acting and ``train`` (environment steps, replay writes, callbacks)
+        """
+        t = self.seconds
+        inner = t["world_model in train_step"] + t["imagination in train_step"]
+        return {
+            "acting": t["acting"],
+            "world_model": t["world_model"],
+            "imagination": t["imagination"],
+            "actor_critic_ae": t["train_step"] - inner,
+            "replay_and_rest": t["train"] - t["train_step"] - (t["world_model"] + t["imagination"] - inner),
+            "env_and_rest": wall - t["acting"] - t["train"],
+        }
+
+
 def run_agent(args: argparse.Namespace) -> None:
     """``agent`` subcommand: env steps/s of ``learn`` for S5WM and RSSM builds; prints the speed-up last."""
     if args.segment < 1 or args.rounds < 1 or args.warmup < 0:
@@ -252,22 +330,26 @@ def run_agent(args: argparse.Namespace) -> None:
         f"segments of {args.segment} env steps = learn({args.segment}, reset_num_timesteps=False), "
         f"{args.warmup} untimed + {args.rounds} timed per build, interleaved"
     )
+    for model in models.values():
+        for _ in range(args.warmup):
+            model.learn(args.segment, reset_num_timesteps=False)
+    clocks = {name: PhaseClock(model) for name, model in models.items()}
     before = {name: list(model._level_updates) for name, model in models.items()}
     variants = {
         name: (lambda model=model: model.learn(args.segment, reset_num_timesteps=False))
         for name, model in models.items()
     }
-    timings: dict[str, Timing] = time_interleaved(variants, warmup=args.warmup, reps=args.rounds)
-    n_segments = args.warmup + args.rounds
+    timings: dict[str, Timing] = time_interleaved(variants, warmup=0, reps=args.rounds)
     for name, timing in timings.items():
         updates = [
-            (now - then) / n_segments for now, then in zip(models[name]._level_updates, before[name], strict=True)
+            (now - then) / args.rounds for now, then in zip(models[name]._level_updates, before[name], strict=True)
         ]
         print(
             f"  {name:<5} segment {timing.min:7.2f} / {timing.median:7.2f} s (min / median), env steps/s "
             f"{args.segment / timing.min:6.2f} / {args.segment / timing.median:6.2f} (best / median), "
             f"updates per segment by level {[f'{u:g}' for u in updates]}"
         )
+    print(agent_phase_table(clocks, timings, args.segment * args.rounds))
     steps_per_s = {name: args.segment / timing.median for name, timing in timings.items()}
     speedup = timings["RSSM"].median / timings["S5WM"].median
     speedup_best = timings["RSSM"].min / timings["S5WM"].min
@@ -277,6 +359,42 @@ def run_agent(args: argparse.Namespace) -> None:
     print(f"s5wm_vs_rssm_speedup_best: {speedup_best:.2f}")
     print(f"s5wm_vs_rssm_speedup: {speedup:.2f}")
     print(f"goal_speedup_1.5x: {'met' if speedup >= 1.5 else 'not met'}")
+
+
+def agent_phase_table(clocks: dict[str, PhaseClock], timings: dict[str, Timing], env_steps: int) -> str:
+    """Where each build's time goes: seconds per 1000 env steps of every :data:`PhaseClock.PHASES` part, its share
+    of the build's wall time, and, with exactly the builds ``S5WM`` and ``RSSM``, RSSM time / S5WM time per part
+    (> 1: S5WM is faster there). Last lines ``<build>_<part>_share: value`` and ``<part>_speedup: value``.
+
+    :param clocks: build name -> its clock, measured over the timed segments only
+    :param timings: build name -> timing of those segments (``total`` is the wall time the clock splits)
+    :param env_steps: env steps per build over the timed segments
+    :return: the table as text
+    """
+    parts = {name: clock.phases(timings[name].total) for name, clock in clocks.items()}
+    names = list(parts)
+    paired = set(names) == {"S5WM", "RSSM"}
+    header = f"{'part (s per 1000 env steps, share)':<36}" + "".join(f"{n:>20}" for n in names)
+    lines = ["", header + (f"{'RSSM / S5WM':>13}" if paired else "")]
+    for phase in (*PhaseClock.PHASES, "total"):
+        row = f"{phase:<36}"
+        for name in names:
+            seconds = timings[name].total if phase == "total" else parts[name][phase]
+            row += f"{seconds * 1000 / env_steps:12.2f} ({seconds / timings[name].total:5.1%})"
+        if paired:
+            rssm = timings["RSSM"].total if phase == "total" else parts["RSSM"][phase]
+            s5 = timings["S5WM"].total if phase == "total" else parts["S5WM"][phase]
+            row += f"{rssm / s5:13.2f}" if s5 > 0 else f"{'-':>13}"
+        lines.append(row)
+    lines.append("")
+    for name in names:
+        for phase in PhaseClock.PHASES:
+            lines.append(f"{name.lower()}_{phase}_share: {parts[name][phase] / timings[name].total:.3f}")
+    if paired:
+        for phase in PhaseClock.PHASES:
+            if parts["S5WM"][phase] > 0:
+                lines.append(f"{phase}_speedup: {parts['RSSM'][phase] / parts['S5WM'][phase]:.2f}")
+    return "\n".join(lines)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,96 @@
+"""benchmarks/speed.py agent's PhaseClock and phase table on tiny models."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+import torch as th
+from hieros_helpers import tiny_kwargs
+
+from benchmarks._timing import Timing
+from benchmarks.speed import PhaseClock, agent_phase_table
+from sb3_hieros import HIEROS
+
+
+def _tiny(seed: int = 0, **overrides) -> HIEROS:
+    kwargs = tiny_kwargs(seed=seed)
+    if overrides:
+        kwargs["config_overrides"] = {**kwargs["config_overrides"], **overrides}
+    return HIEROS("MlpPolicy", "CartPole-v1", **kwargs)
+
+
+def test_phases_split_the_wall_time():
+    model = _tiny()
+    model.learn(40)  # past learning_starts: every later step trains
+    clock = PhaseClock(model)
+    start = time.perf_counter()
+    model.learn(32, reset_num_timesteps=False)
+    wall = time.perf_counter() - start
+    phases = clock.phases(wall)
+    assert tuple(phases) == PhaseClock.PHASES
+    assert all(seconds >= 0.0 for seconds in phases.values()), phases
+    assert sum(phases.values()) == pytest.approx(wall)
+    for trained in ("acting", "world_model", "imagination", "actor_critic_ae"):
+        assert phases[trained] > 0.0, trained
+    clock.reset()
+    assert all(seconds == 0.0 for seconds in clock.phases(0.0).values())
+
+
+def test_clock_leaves_training_unchanged():
+    # one model after the other: constructing a model seeds the global generators that learn draws from
+    timed = _tiny()
+    timed.learn(40)
+    PhaseClock(timed)
+    timed.learn(24, reset_num_timesteps=False)
+    plain = _tiny()
+    plain.learn(40)
+    plain.learn(24, reset_num_timesteps=False)
+    for (name, a), b in zip(timed.policy.state_dict().items(), plain.policy.state_dict().values(), strict=True):
+        assert th.equal(a, b), name
+
+
+def test_shared_world_model_phases_stay_disjoint():
+    model = _tiny(hierarchical_world_models=False)
+    model.learn(40)
+    clock = PhaseClock(model)
+    start = time.perf_counter()
+    model.learn(16, reset_num_timesteps=False)
+    wall = time.perf_counter() - start
+    phases = clock.phases(wall)
+    # level 0's world-model step is timed; the shared imagination and actor-critic count as replay_and_rest
+    assert phases["world_model"] > 0.0 and phases["replay_and_rest"] > 0.0
+    assert phases["imagination"] == phases["actor_critic_ae"] == 0.0
+    assert all(seconds >= 0.0 for seconds in phases.values()), phases
+    assert sum(phases.values()) == pytest.approx(wall)
+
+
+def test_phase_table_ratios():
+    class FixedClock(PhaseClock):
+        def __init__(self, seconds: dict[str, float]) -> None:
+            self.seconds = dict(seconds)
+
+    def inside(acting: float, train: float, train_step: float, world_model: float, imagination: float) -> FixedClock:
+        return FixedClock(
+            {
+                "acting": acting,
+                "train": train,
+                "train_step": train_step,
+                "world_model": world_model,
+                "imagination": imagination,
+                "world_model in train_step": world_model,
+                "imagination in train_step": imagination,
+            }
+        )
+
+    s5 = inside(1.0, 6.0, 5.0, 3.0, 1.0)
+    rssm = inside(1.0, 7.5, 6.5, 3.0, 2.5)
+    timings = {"S5WM": Timing(1.0, 1.0, 8, 8.0), "RSSM": Timing(1.0, 1.0, 8, 9.5)}
+    table = agent_phase_table({"S5WM": s5, "RSSM": rssm}, timings, env_steps=1000)
+    figures = dict(line.split(": ") for line in table.splitlines() if ": " in line)
+    assert float(figures["imagination_speedup"]) == pytest.approx(2.5)
+    assert float(figures["world_model_speedup"]) == pytest.approx(1.0)
+    assert float(figures["s5wm_world_model_share"]) == pytest.approx(3.0 / 8.0, abs=1e-3)
+    assert float(figures["rssm_env_and_rest_share"]) == pytest.approx(1.0 / 9.5, abs=1e-3)
+    total_row = next(line for line in table.splitlines() if line.startswith("total"))
+    assert total_row.split()[-1] == f"{9.5 / 8.0:.2f}"
