@@ -394,7 +394,31 @@ def agent_phase_table(clocks: dict[str, PhaseClock], timings: dict[str, Timing],
         for phase in PhaseClock.PHASES:
             if parts["S5WM"][phase] > 0:
                 lines.append(f"{phase}_speedup: {parts['RSSM'][phase] / parts['S5WM'][phase]:.2f}")
+        rssm_total = timings["RSSM"].total
+        for free in ((), ("imagination", "acting")):
+            needed = world_model_speedup_needed(parts["S5WM"], parts["RSSM"]["world_model"], rssm_total, 1.5, free)
+            name = "world_model_speedup_needed_for_1.5x" + ("_with_imagination_and_acting_free" if free else "")
+            lines.append(f"{name}: {needed:.2f}")
     return "\n".join(lines)
+
+
+def world_model_speedup_needed(
+    s5wm: dict[str, float], rssm_world_model: float, rssm_total: float, goal: float, free: Sequence[str] = ()
+) -> float:
+    """How much faster than RSSM's the S5WM world-model step would have to be for the whole agent to reach ``goal``
+    times RSSM's speed, every other part of S5WM as measured (or, for the parts named in ``free``, costing nothing).
+
+    :param s5wm: S5WM's :data:`PhaseClock.PHASES` parts in seconds
+    :param rssm_world_model: RSSM's world-model step time over the same env steps
+    :param rssm_total: RSSM's wall time over the same env steps
+    :param goal: whole-agent speed-up sought
+    :param free: parts of S5WM taken to cost nothing
+    :return: RSSM world-model time / allowed S5WM world-model time; ``inf`` when the other parts alone exceed the
+        time the goal allows
+    """
+    others = sum(seconds for phase, seconds in s5wm.items() if phase != "world_model" and phase not in free)
+    allowed = rssm_total / goal - others
+    return rssm_world_model / allowed if allowed > 0 else float("inf")
 
 
 def build_parser() -> argparse.ArgumentParser:

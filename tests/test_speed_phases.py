@@ -9,7 +9,7 @@ import torch as th
 from hieros_helpers import tiny_kwargs
 
 from benchmarks._timing import Timing
-from benchmarks.speed import PhaseClock, agent_phase_table
+from benchmarks.speed import PhaseClock, agent_phase_table, world_model_speedup_needed
 from sb3_hieros import HIEROS
 
 
@@ -94,3 +94,13 @@ def test_phase_table_ratios():
     assert float(figures["rssm_env_and_rest_share"]) == pytest.approx(1.0 / 9.5, abs=1e-3)
     total_row = next(line for line in table.splitlines() if line.startswith("total"))
     assert total_row.split()[-1] == f"{9.5 / 8.0:.2f}"
+
+
+def test_world_model_speedup_needed():
+    s5 = {"acting": 1.0, "world_model": 4.0, "imagination": 2.0, "actor_critic_ae": 2.0, "env_and_rest": 1.0}
+    # RSSM: 12 s in all, 6 s of world model; 1.5x allows 8 s, the other parts take 6 s: 2 s of world model left
+    assert world_model_speedup_needed(s5, 6.0, 12.0, 1.5) == pytest.approx(3.0)
+    # with imagination and acting free, 3 s of other parts leave 5 s
+    assert world_model_speedup_needed(s5, 6.0, 12.0, 1.5, ("imagination", "acting")) == pytest.approx(1.2)
+    # the other parts alone take longer than the goal allows
+    assert world_model_speedup_needed(s5, 6.0, 12.0, 3.0) == float("inf")
