@@ -208,6 +208,66 @@ def test_gradients_reach_every_parameter():
     assert torch.isfinite(torch.view_as_real(state.grad)).all() and state.grad.abs().sum() > 0
 
 
+def test_step_gradients_match_parallel_form():
+    # the step form's real-arithmetic state update differentiates like the complex scan
+    stack = S5Stack(2, H, P, J)
+    x, reset = _inputs(length=5)
+    state = _random_state(3, 2, P)
+
+    def grads(run):
+        stack.zero_grad()
+        y, states = run()
+        (y.square().mean() + torch.view_as_real(states).square().mean()).backward()
+        return {name: p.grad.clone() for name, p in stack.named_parameters()}
+
+    parallel = grads(lambda: stack(x, reset, state))
+    stepped = grads(lambda: _step_loop(stack, x, reset, state))
+    for name, grad in parallel.items():
+        assert torch.allclose(grad, stepped[name], atol=1e-4, rtol=1e-3), name
+
+
+def test_reuse_step_weights_gives_the_same_steps_and_gradients():
+    stack = S5Stack(2, H, P, J)
+    x, reset = _inputs(length=6)
+    state = _random_state(3, 2, P)
+
+    def run():
+        stack.zero_grad()
+        y, states = _step_loop(stack, x, reset, state)
+        (y.square().mean() + torch.view_as_real(states).square().mean()).backward()
+        return y.detach(), states.detach(), {name: p.grad.clone() for name, p in stack.named_parameters()}
+
+    y_fresh, s_fresh, g_fresh = run()
+    with stack.reuse_step_weights():
+        assert all(block.s5._held_step_weights is not None for block in stack.blocks)
+        y_held, s_held, g_held = run()
+    assert all(block.s5._held_step_weights is None for block in stack.blocks)
+    assert torch.equal(y_fresh, y_held) and torch.equal(s_fresh, s_held)
+    for name, grad in g_fresh.items():
+        assert torch.allclose(grad, g_held[name], atol=1e-6, rtol=1e-5), name
+
+
+def test_reuse_step_weights_nests_and_releases_on_error():
+    layer = S5Layer(H, P, J)
+    with layer.reuse_step_weights():
+        held = layer._held_step_weights
+        with layer.reuse_step_weights():
+            assert layer._held_step_weights is held  # the outer block's weights stay
+        assert layer._held_step_weights is held
+    assert layer._held_step_weights is None
+    with pytest.raises(RuntimeError, match="inside"):
+        with layer.reuse_step_weights():
+            raise RuntimeError("inside")
+    assert layer._held_step_weights is None
+    # outside a block a parameter change shows in the next step at once
+    x, state = torch.randn(3, H), _random_state(3, P)
+    y_before, _ = layer.step(x, state)
+    with torch.no_grad():
+        layer.log_step.add_(0.5)
+    y_after, _ = layer.step(x, state)
+    assert not torch.equal(y_before, y_after)
+
+
 def test_long_sequence_stays_finite():
     stack = S5Stack(2, H, P, J)
     x = 3.0 * torch.randn(2, 2048, H)

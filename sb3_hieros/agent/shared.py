@@ -282,7 +282,7 @@ def train_shared_hierarchy(
     n = int(start.batch_shape[0])
     dynamics = level0.imag_gradient == "dynamics"
     extras = config.actor_critic.actor_extras
-    with contextlib.nullcontext() if dynamics else th.no_grad():
+    with contextlib.nullcontext() if dynamics else th.no_grad(), wm.reuse_step_weights():
         state = start
         codes: list[th.Tensor | None] = [None] * n_levels  # codes[i]: subgoal in force for level i
         feats: list[list[th.Tensor]] = [[] for _ in range(n_levels)]

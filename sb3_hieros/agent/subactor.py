@@ -674,19 +674,20 @@ class Subactor(nn.Module):
         horizon, k = self.config.imag_horizon, self.config.subgoal_interval
         state = start
         states, feats, actions, rewards, conts = [start], [], [], [], []
-        for t in range(horizon + 1):
-            if replan is not None and t > 0 and t % k == 0:
-                goal_feat = replan(states)
-            feat, reward, cont = self._features(state, goal_feat)
-            feats.append(feat)
-            rewards.append(reward)
-            conts.append(cont)
-            if t == horizon:
-                break
-            action = actor(feat.detach()).sample()  # (N, *action_shape)
-            actions.append(action)
-            state, _ = wm.img_step(state, action.reshape(action.shape[0], self.action_dim))
-            states.append(state)
+        with wm.reuse_step_weights():  # one discretisation for the whole rollout (S5WM)
+            for t in range(horizon + 1):
+                if replan is not None and t > 0 and t % k == 0:
+                    goal_feat = replan(states)
+                feat, reward, cont = self._features(state, goal_feat)
+                feats.append(feat)
+                rewards.append(reward)
+                conts.append(cont)
+                if t == horizon:
+                    break
+                action = actor(feat.detach()).sample()  # (N, *action_shape)
+                actions.append(action)
+                state, _ = wm.img_step(state, action.reshape(action.shape[0], self.action_dim))
+                states.append(state)
         trajectory = LatentState(*(th.stack(fields, 0) for fields in zip(*states, strict=True)))
         return trajectory, th.stack(feats, 0), th.stack(actions, 0), th.stack(rewards, 0), th.stack(conts, 0)
 

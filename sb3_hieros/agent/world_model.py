@@ -762,6 +762,14 @@ class WorldModel(nn.Module):
         """
         raise NotImplementedError
 
+    def reuse_step_weights(self) -> contextlib.AbstractContextManager:
+        """A block in which the sequence model may reuse per-rollout step weights (S5WM: the discretisation,
+        :meth:`sb3_hieros.nn.s5.S5Stack.reuse_step_weights`); the parameters must not change inside it.
+
+        :return: context manager (a no-op for models without such weights)
+        """
+        return contextlib.nullcontext()
+
     def no_weight_decay_parameters(self) -> list[nn.Parameter]:
         """Parameters to train without weight decay: SSM parameters (S5WM), norms, biases and other 1-d tensors.
 
@@ -971,15 +979,16 @@ class WorldModel(nn.Module):
         was_training = self.training
         self.train(False)
         try:
-            states, actions, entropies = [stored(start)], [], [self.prior_entropy(start)]
-            state = start
-            for _ in range(horizon):
-                action = act(state)
-                actions.append(action)
-                state, _ = self.img_step(state, action, deterministic)
-                states.append(stored(state))
-                entropies.append(self.prior_entropy(state))
-            actions.append(act(state))
+            with self.reuse_step_weights():
+                states, actions, entropies = [stored(start)], [], [self.prior_entropy(start)]
+                state = start
+                for _ in range(horizon):
+                    action = act(state)
+                    actions.append(action)
+                    state, _ = self.img_step(state, action, deterministic)
+                    states.append(stored(state))
+                    entropies.append(self.prior_entropy(state))
+                actions.append(act(state))
         finally:
             self.train(was_training)
         return stack_states(states, 0), th.stack(actions, 0), th.stack(entropies, 0)
@@ -1026,6 +1035,9 @@ class S5WorldModel(WorldModel):
             compile_s5(self.sequence_model)
         self._seq_forward: Callable[..., tuple[th.Tensor, th.Tensor]] = self.sequence_model.forward
         self._seq_step: Callable[..., tuple[th.Tensor, th.Tensor]] = self.sequence_model.step
+
+    def reuse_step_weights(self) -> contextlib.AbstractContextManager:
+        return self.sequence_model.reuse_step_weights()
 
     def no_weight_decay_parameters(self) -> list[nn.Parameter]:
         """SSM parameters of the S5 stack (Lambda, B, Delta) plus all 1-d parameters.

@@ -27,6 +27,7 @@ Differences to the public reference implementation (research note hieros_referen
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable, Iterator
 
@@ -349,6 +350,8 @@ class S5Layer(nn.Module):
         # Opt-in alternative computation path (see ``compile_s5``); not part of the state_dict.
         self.real_split = False
         self._compiled_core: Callable[..., tuple[torch.Tensor, torch.Tensor]] | None = None
+        # Step weights held by ``reuse_step_weights`` (not part of the state_dict).
+        self._held_step_weights: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
 
     def extra_repr(self) -> str:
         return f"d_model={self.d_model}, d_state={self.d_state}, n_blocks={self.n_blocks}"
@@ -394,6 +397,33 @@ class S5Layer(nn.Module):
         w_in = torch.view_as_real(b_bar).transpose(1, 2).reshape(2 * self.d_state, self.d_model)
         w_out = torch.stack((self.C[..., 0], -self.C[..., 1]), dim=-1).reshape(self.d_model, 2 * self.d_state)
         return lambda_bar, w_in, w_out
+
+    def _step_weights(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`_real_weights` for the step form, with ``Lambda_bar`` as ``(P, 2)`` reals (Re, Im); the ones held
+        by :meth:`reuse_step_weights` inside its block.
+
+        :return: ``Lambda_bar`` ``(P, 2)``, input weight ``(2P, H)``, output weight ``(H, 2P)``
+        """
+        if self._held_step_weights is not None:
+            return self._held_step_weights
+        lambda_bar, w_in, w_out = self._real_weights()
+        return torch.view_as_real(lambda_bar), w_in, w_out
+
+    @contextlib.contextmanager
+    def reuse_step_weights(self) -> Iterator[None]:
+        """Discretise once and reuse the step weights for every :meth:`step` inside the block (a rollout of many
+        steps: imagination). The parameters must not change inside it. Under autograd the held weights stay in the
+        graph, so gradients still reach the parameters. Nested blocks keep the outermost block's weights.
+        """
+        if self._held_step_weights is not None:
+            yield
+            return
+        with torch.autocast(device_type=self.B.device.type, enabled=False):
+            self._held_step_weights = self._step_weights()
+        try:
+            yield
+        finally:
+            self._held_step_weights = None
 
     def _forward(
         self, x: torch.Tensor, reset: torch.Tensor, state: torch.Tensor | None
@@ -448,21 +478,25 @@ class S5Layer(nn.Module):
     def _step(
         self, x: torch.Tensor, state: torch.Tensor | None, reset: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``step`` without input checks."""
+        """``step`` without input checks. The state update ``Lambda_bar x + B_bar u`` runs on (re, im) pairs in real
+        arithmetic, which is several times faster than complex multiplication for one step on a CPU."""
+        batch = x.shape[0]
         with torch.autocast(device_type=x.device.type, enabled=False):
             u = x.to(self.B.dtype)
-            lambda_bar, w_in, w_out = self._real_weights()
+            lambda_ri, w_in, w_out = self._step_weights()  # (P, 2), (2P, H), (H, 2P)
         bu = F.linear(u, w_in).to(u.dtype)  # (B, 2P), in an enclosing autocast's dtype, then back
         with torch.autocast(device_type=x.device.type, enabled=False):
-            new_state = torch.view_as_complex(bu.view(x.shape[0], self.d_state, 2))  # (B, P)
+            new_state = bu.view(batch, self.d_state, 2)  # (B, P, 2) = (Re, Im) of B_bar u
             if state is not None:
-                carried = lambda_bar * state
+                old = torch.view_as_real(state)  # (B, P, 2)
                 if reset is not None:
-                    carried = carried * (~reset).to(u.dtype).unsqueeze(-1)
+                    old = old * (~reset).to(u.dtype).view(batch, 1, 1)
+                lam_re, lam_im = lambda_ri[:, 0], lambda_ri[:, 1]  # (P,)
+                old_re, old_im = old[..., 0], old[..., 1]  # (B, P)
+                carried = torch.stack((lam_re * old_re - lam_im * old_im, lam_re * old_im + lam_im * old_re), -1)
                 new_state = carried + new_state
-        real_state = torch.view_as_real(new_state).reshape(x.shape[0], 2 * self.d_state)
-        y = F.linear(real_state, w_out).to(u.dtype) + u * self.D
-        return y, new_state
+        y = F.linear(new_state.reshape(batch, 2 * self.d_state), w_out).to(u.dtype) + u * self.D
+        return y, torch.view_as_complex(new_state.contiguous())
 
     def step(
         self, x: torch.Tensor, state: torch.Tensor | None, reset: torch.Tensor | None = None
@@ -616,6 +650,14 @@ class S5Stack(nn.Module):
         """
         for block in self.blocks:
             yield from block.ssm_parameters()
+
+    @contextlib.contextmanager
+    def reuse_step_weights(self) -> Iterator[None]:
+        """:meth:`S5Layer.reuse_step_weights` for every layer: discretise once for a rollout of many steps."""
+        with contextlib.ExitStack() as stack:
+            for block in self.blocks:
+                stack.enter_context(block.s5.reuse_step_weights())
+            yield
 
     def forward(
         self, x: torch.Tensor, reset: torch.Tensor, state: torch.Tensor | None = None
