@@ -209,7 +209,7 @@ def test_gradients_reach_every_parameter():
 
 
 def test_step_gradients_match_parallel_form():
-    # the step form's real-arithmetic state update differentiates like the complex scan
+    # the step form (one step at a time, weights as used by imagination) differentiates like the parallel scan
     stack = S5Stack(2, H, P, J)
     x, reset = _inputs(length=5)
     state = _random_state(3, 2, P)
