@@ -244,7 +244,7 @@ class PhaseClock:
                 ("world_model_step", "world_model"),
                 ("_imagine", "imagination"),
             ):
-                if hasattr(level, name):  # the shared-world-model ablation's levels have none of them
+                if hasattr(level, name):  # the shared-world-model ablation's upper levels have none
                     self._wrap(level, name, key)
 
     def _wrap(self, owner: Any, name: str, key: str) -> None:
