@@ -394,7 +394,8 @@ def table(records: Sequence[dict[str, Any]]) -> str:
             wall = np.mean([r["wall_s"] for r in runs])
             trained = max(r["trained_steps"] for r in runs)
             extra = f", {trained:,} steps" if trained != runs[0]["steps"] else ""
-            cells.append(f"{finals.mean():.1f} +- {finals.std():.1f} ({len(runs)} seeds, {wall:.0f} s/run{extra})")
+            seeds = f"{len(runs)} seed" + ("s" if len(runs) != 1 else "")
+            cells.append(f"{finals.mean():.1f} +- {finals.std():.1f} ({seeds}, {wall:.0f} s/run{extra})")
         steps = max(r["steps"] for r in records if r["task"] == task)
         episodes = "/".join(str(e) for e in sorted({r["eval_episodes"] for r in records if r["task"] == task}))
         lines.append(f"| {task} | {steps:,} | {episodes} episodes | " + " | ".join(cells) + " |")
