@@ -417,7 +417,7 @@ class S5Layer(nn.Module):
             yield
             return
         with torch.autocast(device_type=self.B.device.type, enabled=False):
-            self._held_step_weights = self._step_weights()
+            self._held_step_weights = self._real_weights()
         try:
             yield
         finally:
