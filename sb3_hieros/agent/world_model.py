@@ -667,6 +667,12 @@ class WorldModel(nn.Module):
         :param batch_size: number of parallel states
         :return: state of batch shape (batch_size,)
         """
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
+        return self._initial_state(batch_size)
+
+    def _initial_state(self, batch_size: int) -> LatentState:
+        """:meth:`initial_state` of a checked ``batch_size``."""
         raise NotImplementedError
 
     #: whether ``deter`` is the recurrent memory itself (RSSM), so :meth:`unpack_context` restores it from ``seq``
@@ -729,6 +735,20 @@ class WorldModel(nn.Module):
         :param deterministic: take posterior modes instead of samples
         :return: posterior states (batch (B, T)) and the prior logits (B, T, G, K)
         """
+        obs, actions, is_first, (batch, _) = self._check_sequence(observations, prev_actions, is_first)
+        if state is not None:
+            self._check_state(state, (batch,))
+        return self._observe(obs, actions, is_first, state, deterministic)
+
+    def _observe(
+        self,
+        obs: dict[str, th.Tensor],
+        prev_actions: th.Tensor,
+        is_first: th.Tensor,
+        state: LatentState | None,
+        deterministic: bool,
+    ) -> tuple[LatentState, th.Tensor]:
+        """:meth:`observe` of checked inputs (``obs`` as a dict, ``is_first`` bool)."""
         raise NotImplementedError
 
     def obs_step(
@@ -748,6 +768,19 @@ class WorldModel(nn.Module):
         :param deterministic: take the posterior mode instead of a sample
         :return: the posterior state (batch (B,))
         """
+        obs, action, is_first, batch = self._check_step(observation, prev_action, is_first)
+        state = self.initial_state(batch) if state is None else self._check_state(state, (batch,))
+        return self._obs_step(state, obs, action, is_first, deterministic)
+
+    def _obs_step(
+        self,
+        state: LatentState,
+        obs: dict[str, th.Tensor],
+        prev_action: th.Tensor,
+        is_first: th.Tensor,
+        deterministic: bool,
+    ) -> LatentState:
+        """:meth:`obs_step` of checked inputs (``state`` given, ``obs`` as a dict, ``is_first`` bool)."""
         raise NotImplementedError
 
     def img_step(
@@ -760,6 +793,12 @@ class WorldModel(nn.Module):
         :param deterministic: take the prior mode instead of a sample
         :return: next state (z drawn from the prior) and its prior logits (N, G, K)
         """
+        action = self._check_actions(action, 2, "action")
+        self._check_state(state, (int(action.shape[0]),))
+        return self._img_step(state, action, deterministic)
+
+    def _img_step(self, state: LatentState, action: th.Tensor, deterministic: bool) -> tuple[LatentState, th.Tensor]:
+        """:meth:`img_step` of checked inputs."""
         raise NotImplementedError
 
     def reuse_step_weights(self) -> contextlib.AbstractContextManager:
@@ -1048,9 +1087,7 @@ class S5WorldModel(WorldModel):
         params.update({id(p): p for p in super().no_weight_decay_parameters()})
         return list(params.values())
 
-    def initial_state(self, batch_size: int) -> LatentState:
-        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
-            raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
+    def _initial_state(self, batch_size: int) -> LatentState:
         uniform = self._uniform_logits(batch_size)
         return LatentState(
             stoch=th.zeros(batch_size, self.stoch_dim, device=self.device),
@@ -1070,17 +1107,15 @@ class S5WorldModel(WorldModel):
         source = th.view_as_real(seq).flatten(-3) if self.config.deter_from == "state" else out
         return symlog(self.deter_out(source).float())
 
-    def observe(
+    def _observe(
         self,
-        observations: th.Tensor | Mapping[str, th.Tensor],
-        prev_actions: th.Tensor,
+        obs: dict[str, th.Tensor],
+        actions: th.Tensor,
         is_first: th.Tensor,
-        state: LatentState | None = None,
-        deterministic: bool = False,
+        state: LatentState | None,
+        deterministic: bool,
     ) -> tuple[LatentState, th.Tensor]:
-        obs, actions, is_first, (batch, length) = self._check_sequence(observations, prev_actions, is_first)
-        if state is not None:
-            self._check_state(state, (batch,))
+        batch, length = actions.shape[:2]
         embed = self._embed(obs, (batch, length))  # (B, T, E)
         with self._autocast():
             post_raw = self.post_net(embed)
@@ -1111,16 +1146,15 @@ class S5WorldModel(WorldModel):
             prior_raw = self.prior_net(out)
         return deter, seq, prior_raw
 
-    def obs_step(
+    def _obs_step(
         self,
-        state: LatentState | None,
-        observation: th.Tensor | Mapping[str, th.Tensor],
-        prev_action: th.Tensor,
+        state: LatentState,
+        obs: dict[str, th.Tensor],
+        action: th.Tensor,
         is_first: th.Tensor,
-        deterministic: bool = False,
+        deterministic: bool,
     ) -> LatentState:
-        obs, action, is_first, batch = self._check_step(observation, prev_action, is_first)
-        state = self.initial_state(batch) if state is None else self._check_state(state, (batch,))
+        batch = int(action.shape[0])
         deter, seq, prior_raw = self._prior_step(state, action, is_first)
         embed = self._embed(obs, (batch,))
         with self._autocast():
@@ -1128,11 +1162,7 @@ class S5WorldModel(WorldModel):
         stoch, post_logits = self._draw(post_raw, deterministic)
         return LatentState(stoch, deter, seq, post_logits, self._normalise(prior_raw))
 
-    def img_step(
-        self, state: LatentState, action: th.Tensor, deterministic: bool = False
-    ) -> tuple[LatentState, th.Tensor]:
-        action = self._check_actions(action, 2, "action")
-        self._check_state(state, (int(action.shape[0]),))
+    def _img_step(self, state: LatentState, action: th.Tensor, deterministic: bool) -> tuple[LatentState, th.Tensor]:
         deter, seq, prior_raw = self._prior_step(state, action, None)
         stoch, prior_logits = self._draw(prior_raw, deterministic)
         return LatentState(stoch, deter, seq, prior_logits, prior_logits), prior_logits
@@ -1184,9 +1214,7 @@ class RSSMWorldModel(WorldModel):
         if compile:
             self._cell = th.compile(self._cell_eager)
 
-    def initial_state(self, batch_size: int) -> LatentState:
-        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
-            raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
+    def _initial_state(self, batch_size: int) -> LatentState:
         deter = th.zeros(batch_size, self.deter_dim, device=self.device)
         uniform = self._uniform_logits(batch_size)
         return LatentState(th.zeros(batch_size, self.stoch_dim, device=self.device), deter, deter, uniform, uniform)
@@ -1207,16 +1235,16 @@ class RSSMWorldModel(WorldModel):
         post_raw = self.post_out(F.silu(self.post_norm(self.post_deter(deter) + embed_pre)))
         return deter, post_raw
 
-    def observe(
+    def _observe(
         self,
-        observations: th.Tensor | Mapping[str, th.Tensor],
-        prev_actions: th.Tensor,
+        obs: dict[str, th.Tensor],
+        actions: th.Tensor,
         is_first: th.Tensor,
-        state: LatentState | None = None,
-        deterministic: bool = False,
+        state: LatentState | None,
+        deterministic: bool,
     ) -> tuple[LatentState, th.Tensor]:
-        obs, actions, is_first, (batch, length) = self._check_sequence(observations, prev_actions, is_first)
-        state = self.initial_state(batch) if state is None else self._check_state(state, (batch,))
+        batch, length = actions.shape[:2]
+        state = self.initial_state(batch) if state is None else state
         embed = self._embed(obs, (batch, length))
         keep = (~is_first).unsqueeze(-1).to(actions.dtype)  # (B, T, 1)
         with self._autocast():
@@ -1237,16 +1265,15 @@ class RSSMWorldModel(WorldModel):
         post = LatentState(th.stack(stochs, 1), deter_seq, deter_seq, th.stack(logits, 1), prior_logits)
         return post, prior_logits
 
-    def obs_step(
+    def _obs_step(
         self,
-        state: LatentState | None,
-        observation: th.Tensor | Mapping[str, th.Tensor],
-        prev_action: th.Tensor,
+        state: LatentState,
+        obs: dict[str, th.Tensor],
+        action: th.Tensor,
         is_first: th.Tensor,
-        deterministic: bool = False,
+        deterministic: bool,
     ) -> LatentState:
-        obs, action, is_first, batch = self._check_step(observation, prev_action, is_first)
-        state = self.initial_state(batch) if state is None else self._check_state(state, (batch,))
+        batch = int(action.shape[0])
         keep = (~is_first).unsqueeze(-1).to(action.dtype)
         embed = self._embed(obs, (batch,))
         with self._autocast():
@@ -1257,11 +1284,7 @@ class RSSMWorldModel(WorldModel):
             prior_raw = self.prior_net(deter)
         return LatentState(stoch, deter, deter, post_logits, self._normalise(prior_raw))
 
-    def img_step(
-        self, state: LatentState, action: th.Tensor, deterministic: bool = False
-    ) -> tuple[LatentState, th.Tensor]:
-        action = self._check_actions(action, 2, "action")
-        self._check_state(state, (int(action.shape[0]),))
+    def _img_step(self, state: LatentState, action: th.Tensor, deterministic: bool) -> tuple[LatentState, th.Tensor]:
         with self._autocast():
             deter = self.gru(self.inp(state.stoch, action), state.deter).float()
             prior_raw = self.prior_net(deter)
