@@ -743,12 +743,13 @@ class WorldModel(nn.Module):
     def _observe(
         self,
         obs: dict[str, th.Tensor],
-        prev_actions: th.Tensor,
+        actions: th.Tensor,
         is_first: th.Tensor,
         state: LatentState | None,
         deterministic: bool,
     ) -> tuple[LatentState, th.Tensor]:
-        """:meth:`observe` of checked inputs (``obs`` as a dict, ``is_first`` bool)."""
+        """:meth:`observe` of checked inputs (``obs`` as a dict, ``actions`` the previous actions, ``is_first``
+        bool)."""
         raise NotImplementedError
 
     def obs_step(
@@ -776,11 +777,12 @@ class WorldModel(nn.Module):
         self,
         state: LatentState,
         obs: dict[str, th.Tensor],
-        prev_action: th.Tensor,
+        action: th.Tensor,
         is_first: th.Tensor,
         deterministic: bool,
     ) -> LatentState:
-        """:meth:`obs_step` of checked inputs (``state`` given, ``obs`` as a dict, ``is_first`` bool)."""
+        """:meth:`obs_step` of checked inputs (``state`` given, ``obs`` as a dict, ``action`` the previous action,
+        ``is_first`` bool)."""
         raise NotImplementedError
 
     def img_step(
