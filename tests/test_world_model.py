@@ -500,3 +500,23 @@ def test_grouped_kl_matches_categorical_kl():
     log_p = th.log_softmax(th.randn(3, 5, 4, 6), -1)
     log_q = th.log_softmax(th.randn(3, 5, 4, 6), -1)
     assert th.allclose(_grouped_kl(log_p, log_q), categorical_kl(log_p, log_q), atol=1e-6)
+
+
+def test_grouped_kl_with_given_probabilities_keeps_value_and_gradients():
+    from sb3_hieros.agent.world_model import _grouped_kl
+
+    raw_p = th.randn(3, 5, 4, 6, requires_grad=True)
+    raw_q = th.randn(3, 5, 4, 6, requires_grad=True)
+    log_p, log_q = th.log_softmax(raw_p, -1), th.log_softmax(raw_q, -1)
+    weights = th.rand(3, 5)
+    expected = _grouped_kl(log_p, log_q)
+    want = th.autograd.grad((expected * weights).sum(), (raw_p, raw_q), retain_graph=True)
+    given = _grouped_kl(log_p, log_q, log_p.exp())
+    got = th.autograd.grad((given * weights).sum(), (raw_p, raw_q), retain_graph=True)
+    assert th.allclose(given, expected, atol=1e-6)
+    for g, w in zip(got, want, strict=True):
+        assert th.allclose(g, w, atol=1e-6)
+    # the loss' dynamics term: detached posterior and probabilities, so only the prior gets a gradient
+    dyn = _grouped_kl(log_p.detach(), log_q, log_p.exp().detach())
+    grad_p, grad_q = th.autograd.grad(dyn.sum(), (raw_p, raw_q), allow_unused=True)
+    assert grad_p is None and grad_q.abs().sum() > 0

@@ -310,13 +310,15 @@ class ObservationSpec:
         return parts[0] if len(parts) == 1 else th.cat(parts, -1)
 
 
-def _grouped_kl(log_p: th.Tensor, log_q: th.Tensor) -> th.Tensor:
+def _grouped_kl(log_p: th.Tensor, log_q: th.Tensor, p: th.Tensor | None = None) -> th.Tensor:
     """``KL(p || q)`` summed over groups and classes, for already normalised log-probabilities (..., G, K).
 
     Same value as :func:`~sb3_hieros.nn.distributions.categorical_kl`, without re-normalising inputs that the world
     model keeps normalised (``LatentState.logits`` / ``prior_logits``).
+
+    :param p: ``log_p.exp()`` when the caller already has it (the loss needs it for both KL terms)
     """
-    return (log_p.exp() * (log_p - log_q)).sum((-2, -1))
+    return ((log_p.exp() if p is None else p) * (log_p - log_q)).sum((-2, -1))
 
 
 class _SquaredError(th.autograd.Function):
@@ -920,15 +922,16 @@ class WorldModel(nn.Module):
         reward_nll = -TwoHotSymlog(reward_logits.float(), self.reward_bins).log_prob(samples.rewards.float())
         cont_target = 1.0 - samples.is_terminal.float()
         cont_nll = -ContinueBernoulli(cont_logits.float().squeeze(-1)).log_prob(cont_target)
-        kl_dyn = _grouped_kl(post.logits.detach(), prior_logits)  # (B, T), summed over groups
-        kl_rep = _grouped_kl(post.logits, prior_logits.detach())
+        post_probs = post.logits.exp()  # (B, T, G, K), one exp for both KL terms and the entropy metric
+        kl_dyn = _grouped_kl(post.logits.detach(), prior_logits, post_probs.detach())  # (B, T), summed over groups
+        kl_rep = _grouped_kl(post.logits, prior_logits.detach(), post_probs)
         free = self.config.free_bits
         dyn = kl_dyn.clamp(min=free)
         rep = kl_rep.clamp(min=free)
         per_step = obs_nll + reward_nll + cont_nll + self.config.dyn_scale * dyn + self.config.rep_scale * rep
         loss = per_step.mean()
         with th.no_grad():
-            post_ent = -(post.logits.exp() * post.logits).sum((-2, -1)).mean()
+            post_ent = -(post_probs * post.logits).sum((-2, -1)).mean()
             metrics = {
                 "loss": loss.item(),
                 "obs_loss": obs_nll.mean().item(),

@@ -43,6 +43,7 @@ __all__ = [
     "associative_scan_resettable_real",
     "compile_s5",
     "hippo_n_eigendecomposition",
+    "resettable_scan",
     "s5_parallel_real_split",
     "ssm_parameter_names",
 ]
@@ -123,6 +124,64 @@ def associative_scan_resettable(
     even_rest = lambda_bar * (odd[:, :n_even_rest] * keep[:, 2::2]) + bu[:, 2::2]
     even = torch.cat((first, even_rest), dim=1)
     return _interleave(even, odd, length)
+
+
+class _ResettableScanFunction(torch.autograd.Function):
+    """:func:`associative_scan_resettable` with a hand-written backward (see :func:`resettable_scan`)."""
+
+    @staticmethod
+    def forward(
+        ctx: torch.autograd.function.FunctionCtx,
+        lambda_bar: torch.Tensor,
+        keep: torch.Tensor,
+        bu: torch.Tensor,
+        initial_state: torch.Tensor | None,
+    ) -> torch.Tensor:
+        states = associative_scan_resettable(lambda_bar, keep, bu, initial_state)  # (B, T, P)
+        ctx.save_for_backward(lambda_bar, keep, states, initial_state)
+        return states
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(
+        ctx: torch.autograd.function.FunctionCtx, grad_states: torch.Tensor
+    ) -> tuple[torch.Tensor | None, None, torch.Tensor, torch.Tensor | None]:
+        lambda_bar, keep, states, initial_state = ctx.saved_tensors
+        # Adjoint recurrence G_t = g_t + conj(lambda_bar) keep_{t+1} G_{t+1}: the same scan on the time-reversed
+        # sequence, whose step s carries the flag keep_{T-s} (the first reversed step has no carry-in).
+        keep_reversed = torch.cat((torch.ones_like(keep[:, :1]), keep.flip(1)[:, :-1]), 1)
+        grad_bu = associative_scan_resettable(lambda_bar.conj(), keep_reversed, grad_states.flip(1)).flip(1)
+        grad_lambda = grad_initial = None
+        if ctx.needs_input_grad[0]:
+            first = torch.zeros_like(states[:, :1]) if initial_state is None else initial_state.unsqueeze(1)
+            carried = torch.cat((first, states[:, :-1]), 1) * keep  # keep_t x_{t-1}, (B, T, P)
+            grad_lambda = (grad_bu * carried.conj()).sum((0, 1))
+        if initial_state is not None and ctx.needs_input_grad[3]:
+            grad_initial = lambda_bar.conj() * keep[:, 0] * grad_bu[:, 0]
+        return grad_lambda, None, grad_bu, grad_initial
+
+
+def resettable_scan(
+    lambda_bar: torch.Tensor,
+    keep: torch.Tensor,
+    bu: torch.Tensor,
+    initial_state: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """:func:`associative_scan_resettable` (same arguments and result) with a hand-written backward pass.
+
+    The adjoint of the linear recurrence ``x_t = keep_t * lambda_bar * x_{t-1} + bu_t`` is the same recurrence run
+    backwards in time with ``conj(lambda_bar)``: ``G_t = g_t + conj(lambda_bar) keep_{t+1} G_{t+1}`` gives the
+    gradient of ``bu_t``; ``lambda_bar`` gets ``sum_t G_t conj(keep_t x_{t-1})`` and the initial state
+    ``conj(lambda_bar) keep_0 G_0``. So the backward is one more log-depth scan, instead of autograd replaying every
+    slice, product and concatenation of the recursion; the forward keeps no intermediates. Not twice differentiable.
+
+    :param lambda_bar: discretised diagonal transition ``(P,)`` complex
+    :param keep: ``1 - reset`` as a real tensor ``(B, T, 1)`` (no gradient)
+    :param bu: the inputs ``B_bar u_t`` ``(B, T, P)`` complex
+    :param initial_state: state before step 0 ``(B, P)`` complex, or None for zeros
+    :return: the states ``x_0 .. x_{T-1}`` ``(B, T, P)`` complex
+    """
+    return _ResettableScanFunction.apply(lambda_bar, keep, bu, initial_state)
 
 
 def _complex_mul(
@@ -449,7 +508,7 @@ class S5Layer(nn.Module):
         bu = F.linear(u, w_in).to(u.dtype)  # (B, T, 2P), in an enclosing autocast's dtype, then back
         with torch.autocast(device_type=x.device.type, enabled=False):
             bu = torch.view_as_complex(bu.view(batch, length, self.d_state, 2))  # (B, T, P)
-            states = associative_scan_resettable(lambda_bar, keep, bu, state)  # (B, T, P)
+            states = resettable_scan(lambda_bar, keep, bu, state)  # (B, T, P)
         real_states = torch.view_as_real(states).reshape(batch, length, 2 * self.d_state)
         y = F.linear(real_states, w_out).to(u.dtype) + u * self.D
         return y, states
