@@ -17,13 +17,16 @@ Parts (``--parts a,b,c,d``):
     Goal >= 40 % of the fp32 peak.
 
 Run from the repo root: ``python -m benchmarks.world_model [--parts a,b,c,d] [--quick]``. The last lines print every
-figure as ``name: value``.
+figure as ``name: value``. By default the run first calls :func:`sb3_hieros.memory.retain_freed_memory` (glibc keeps
+freed memory instead of faulting it in again on every update); ``--malloc default`` measures with glibc's own
+settings. Part (b) prints the page faults per call of each model.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import resource
 import time
 from collections.abc import Callable
 from types import SimpleNamespace
@@ -44,6 +47,7 @@ from sb3_hieros.agent.world_model import (
     world_model_optimizer,
 )
 from sb3_hieros.config import WorldModelConfig, get_preset
+from sb3_hieros.memory import retain_freed_memory
 from sb3_hieros.nn.distributions import OneHotCategoricalST
 from sb3_hieros.nn.networks import MLP
 
@@ -239,6 +243,14 @@ def fwd_bwd(model: WorldModel, batch: SimpleNamespace) -> Callable[[], None]:
     return run
 
 
+def faults_per_call(fn: Callable[[], None], calls: int = 3) -> float:
+    """Minor page faults of this process per call of ``fn`` (after the timing, so the heap has grown already)."""
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(calls):
+        fn()
+    return (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / calls
+
+
 def part_b(args: argparse.Namespace) -> None:
     reps = 5 if args.quick else 15
     config = get_preset("small").world_model
@@ -248,7 +260,7 @@ def part_b(args: argparse.Namespace) -> None:
     variants = {kind: fwd_bwd(build(kind, config, space, 2), batch) for kind in ("s5", "rssm")}
     timing = time_interleaved(variants, warmup=3, reps=reps)
     for name, t in timing.items():
-        print(f"  {name:6s} {format_ms(t)}  (min / median)")
+        print(f"  {name:6s} {format_ms(t)}  (min / median), {faults_per_call(variants[name]):.0f} page faults per call")
     record("b_small_rssm_over_s5", timing["rssm"].median / timing["s5"].median)
 
     config = get_preset("paper").world_model
@@ -417,9 +429,18 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile variants of part (b)")
     parser.add_argument("--force-bf16", action="store_true", help="run bf16 variants even without bf16 hardware")
+    parser.add_argument(
+        "--malloc",
+        choices=("retain", "default"),
+        default="retain",
+        help="retain: call sb3_hieros.memory.retain_freed_memory() first (default); default: glibc's own settings",
+    )
     args = parser.parse_args()
     if args.threads is not None:
         th.set_num_threads(args.threads)
+    retained = args.malloc == "retain" and retain_freed_memory()
+    record("malloc", "freed memory retained" if retained else "default settings")
+    print(f"malloc: {RESULTS['malloc']} (--malloc {args.malloc})")
     parts = [p.strip() for p in args.parts.split(",") if p.strip()]
     unknown = set(parts) - set("abcd")
     if unknown:
