@@ -16,10 +16,11 @@ Parts (``--parts a,b,c,d``):
     convolution only), against this machine's matmul peak measured in the same run (4096x1024 @ 1024x1024 fp32).
     Goal >= 40 % of the fp32 peak.
 
-Run from the repo root: ``python -m benchmarks.world_model [--parts a,b,c,d] [--quick]``. The last lines print every
-figure as ``name: value``. By default the run first calls :func:`sb3_hieros.memory.retain_freed_memory` (glibc keeps
-freed memory instead of faulting it in again on every update); ``--malloc default`` measures with glibc's own
-settings. Part (b) prints the page faults per call of each model.
+Run from the repo root: ``python -m benchmarks.world_model [--parts a,b,c,d] [--presets small,paper] [--quick]``
+(``--presets`` limits parts b and c). The last lines print every figure as ``name: value``. By default the run first
+calls :func:`sb3_hieros.memory.retain_freed_memory` (glibc keeps freed memory instead of faulting it in again on
+every update); ``--malloc default`` measures with glibc's own settings. Part (b) prints the page faults per call of
+each model.
 """
 
 from __future__ import annotations
@@ -252,6 +253,13 @@ def faults_per_call(fn: Callable[[], None], calls: int = 3) -> float:
 
 
 def part_b(args: argparse.Namespace) -> None:
+    if "small" in args.presets:
+        part_b_small(args)
+    if "paper" in args.presets:
+        part_b_paper(args)
+
+
+def part_b_small(args: argparse.Namespace) -> None:
     reps = 5 if args.quick else 15
     config = get_preset("small").world_model
     space = spaces.Box(-np.inf, np.inf, (4,), np.float32)
@@ -263,6 +271,8 @@ def part_b(args: argparse.Namespace) -> None:
         print(f"  {name:6s} {format_ms(t)}  (min / median), {faults_per_call(variants[name]):.0f} page faults per call")
     record("b_small_rssm_over_s5", timing["rssm"].median / timing["s5"].median)
 
+
+def part_b_paper(args: argparse.Namespace) -> None:
     config = get_preset("paper").world_model
     space = spaces.Box(0, 255, (3, 64, 64), np.uint8)
     batch = synthetic_batch(16, 64, (3, 64, 64), 18, image=True)
@@ -323,6 +333,8 @@ def part_c(args: argparse.Namespace) -> None:
     reps = 5 if args.quick else 10
     precisions = ("fp32", "bf16") if bf16_hardware() or args.force_bf16 else ("fp32",)
     for preset, obs_shape, image, n_actions in (("small", (4,), False, 2), ("paper", (3, 64, 64), True, 18)):
+        if preset not in args.presets:
+            continue
         cfg = get_preset(preset)
         space = spaces.Box(0, 255, obs_shape, np.uint8) if image else spaces.Box(-np.inf, np.inf, obs_shape)
         for precision in precisions:
@@ -425,6 +437,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--parts", default="a,b,c,d", help="comma-separated subset of a,b,c,d")
     parser.add_argument("--quick", action="store_true", help="fewer updates and repetitions")
+    parser.add_argument("--presets", default="small,paper", help="presets timed by parts (b) and (c): small, paper")
     parser.add_argument("--updates", type=int, default=None, help="training updates of part (a)")
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile variants of part (b)")
@@ -445,6 +458,10 @@ def main() -> None:
     unknown = set(parts) - set("abcd")
     if unknown:
         raise ValueError(f"--parts must be a subset of a,b,c,d, got {sorted(unknown)}")
+    args.presets = [p.strip() for p in args.presets.split(",") if p.strip()]
+    unknown = set(args.presets) - {"small", "paper"}
+    if unknown or not args.presets:
+        raise ValueError(f"--presets must be a non-empty subset of small,paper, got {args.presets}")
     print(environment_header())
     for part in parts:
         {"a": part_a, "b": part_b, "c": part_c, "d": part_d}[part](args)
