@@ -38,7 +38,7 @@ import torch as th
 from gymnasium import spaces
 from torch.utils.flop_counter import FlopCounterMode
 
-from benchmarks._timing import environment_header, format_ms, time_interleaved
+from benchmarks._timing import add_malloc_argument, apply_malloc, environment_header, format_ms, time_interleaved
 from sb3_hieros.agent.world_model import (
     LatentState,
     WorldModel,
@@ -48,7 +48,6 @@ from sb3_hieros.agent.world_model import (
     world_model_optimizer,
 )
 from sb3_hieros.config import WorldModelConfig, get_preset
-from sb3_hieros.memory import retain_freed_memory
 from sb3_hieros.nn.distributions import OneHotCategoricalST
 from sb3_hieros.nn.networks import MLP
 
@@ -442,17 +441,11 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile variants of part (b)")
     parser.add_argument("--force-bf16", action="store_true", help="run bf16 variants even without bf16 hardware")
-    parser.add_argument(
-        "--malloc",
-        choices=("retain", "default"),
-        default="retain",
-        help="retain: call sb3_hieros.memory.retain_freed_memory() first (default); default: glibc's own settings",
-    )
+    add_malloc_argument(parser)
     args = parser.parse_args()
     if args.threads is not None:
         th.set_num_threads(args.threads)
-    retained = args.malloc == "retain" and retain_freed_memory()
-    record("malloc", "freed memory retained" if retained else "default settings")
+    record("malloc", apply_malloc(args.malloc))
     print(f"malloc: {RESULTS['malloc']} (--malloc {args.malloc})")
     parts = [p.strip() for p in args.parts.split(",") if p.strip()]
     unknown = set(parts) - set("abcd")
