@@ -6,7 +6,6 @@ reports min and median wall time. Compare ratios, never absolute times across ma
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import statistics
@@ -15,8 +14,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
-
-from sb3_hieros.memory import retain_freed_memory
 
 
 @dataclass(frozen=True)
@@ -77,25 +74,3 @@ def environment_header() -> str:
 def format_ms(t: Timing) -> str:
     """``'min / median ms'`` of a timing."""
     return f"{t.min * 1e3:8.2f} / {t.median * 1e3:8.2f} ms"
-
-
-def add_malloc_argument(parser: argparse.ArgumentParser) -> None:
-    """``--malloc retain|default``: whether :func:`apply_malloc` calls ``sb3_hieros.memory.retain_freed_memory``."""
-    parser.add_argument(
-        "--malloc",
-        choices=("retain", "default"),
-        default="retain",
-        help="retain: call sb3_hieros.memory.retain_freed_memory() first (default); default: glibc's own settings",
-    )
-
-
-def apply_malloc(mode: str) -> str:
-    """Apply ``--malloc`` before anything is timed.
-
-    :param mode: ``"retain"`` or ``"default"``
-    :return: what is in effect, for the benchmark's output
-    """
-    if mode not in ("retain", "default"):
-        raise ValueError(f"--malloc must be 'retain' or 'default', got {mode!r}")
-    retained = mode == "retain" and retain_freed_memory()
-    return "freed memory retained" if retained else "default settings"

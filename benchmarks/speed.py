@@ -14,8 +14,7 @@ alternating segments of ``--segment`` environment steps (``learn(segment, reset_
 warm-up segment each first. The thesis reports S5WM 1.59x as fast as RSSM on a GPU; the goal here is >= 1.5x.
 During the timed segments a :class:`PhaseClock` splits each build's wall time into acting, world-model updates,
 imagination, actor-critic + autoencoder updates, replay sampling and the rest (environment, buffer writes), so the
-table shows which parts the sequence model can speed up at all. It first calls
-:func:`sb3_hieros.memory.retain_freed_memory` unless ``--malloc default`` is given.
+table shows which parts the sequence model can speed up at all.
 """
 
 from __future__ import annotations
@@ -31,14 +30,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from benchmarks._timing import (
-    Timing,
-    add_malloc_argument,
-    apply_malloc,
-    environment_header,
-    format_ms,
-    time_interleaved,
-)
+from benchmarks._timing import Timing, environment_header, format_ms, time_interleaved
 from sb3_hieros.nn.s5 import S5Layer, S5Stack, _interleave, associative_scan_resettable, compile_s5
 
 Elements = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
@@ -305,7 +297,6 @@ def run_agent(args: argparse.Namespace) -> None:
         raise ValueError(
             f"need --segment >= 1, --rounds >= 1, --warmup >= 0, got {args.segment}, {args.rounds}, {args.warmup}"
         )
-    print(f"malloc: {apply_malloc(args.malloc)} (--malloc {args.malloc})")
     print(environment_header())
     load, cpus = os.getloadavg()[0], os.cpu_count() or 1
     if torch.get_num_threads() > 1 and load + torch.get_num_threads() > cpus:
@@ -467,7 +458,6 @@ def build_parser() -> argparse.ArgumentParser:
     agent.add_argument("--n-levels", type=int, default=None, help="hierarchy depth (default: the preset's)")
     agent.add_argument("--game", default="Pong", help="Atari game (default Pong)")
     agent.add_argument("--seed", type=int, default=0)
-    add_malloc_argument(agent)
     agent.set_defaults(func=run_agent)
     return parser
 

@@ -17,10 +17,9 @@ Parts (``--parts a,b,c,d``):
     Goal >= 40 % of the fp32 peak.
 
 Run from the repo root: ``python -m benchmarks.world_model [--parts a,b,c,d] [--presets small,paper] [--quick]``
-(``--presets`` limits parts b and c). The last lines print every figure as ``name: value``. By default the run first
-calls :func:`sb3_hieros.memory.retain_freed_memory` (glibc keeps freed memory instead of faulting it in again on
-every update); ``--malloc default`` measures with glibc's own settings. Part (b) prints the page faults per call of
-each model.
+(``--presets`` limits parts b and c). The last lines print every figure as ``name: value``. Part (b) also prints the
+minor page faults per call of each model (memory the allocator handed back to the OS and the next update touches
+again).
 """
 
 from __future__ import annotations
@@ -38,7 +37,7 @@ import torch as th
 from gymnasium import spaces
 from torch.utils.flop_counter import FlopCounterMode
 
-from benchmarks._timing import add_malloc_argument, apply_malloc, environment_header, format_ms, time_interleaved
+from benchmarks._timing import environment_header, format_ms, time_interleaved
 from sb3_hieros.agent.world_model import (
     LatentState,
     WorldModel,
@@ -441,12 +440,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile variants of part (b)")
     parser.add_argument("--force-bf16", action="store_true", help="run bf16 variants even without bf16 hardware")
-    add_malloc_argument(parser)
     args = parser.parse_args()
     if args.threads is not None:
         th.set_num_threads(args.threads)
-    record("malloc", apply_malloc(args.malloc))
-    print(f"malloc: {RESULTS['malloc']} (--malloc {args.malloc})")
     parts = [p.strip() for p in args.parts.split(",") if p.strip()]
     unknown = set(parts) - set("abcd")
     if unknown:
