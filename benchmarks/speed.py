@@ -1,7 +1,8 @@
 """Speed benchmarks, one argparse subcommand per table.
 
 ``python -m benchmarks.speed s5`` times forward+backward of the resettable S5 layer (thesis 4.4.2) against
-recurrent baselines and against the scan style of the public HIEROS reference implementation, following the
+recurrent baselines, and its scan against the same scan differentiated by autograd (instead of its hand-written
+backward) and against the scan style of the public HIEROS reference implementation, following the
 protocol of research note perf_anchors.md section 5.1 (``benchmarks/_timing.py``): all variants of one
 sequence length run interleaved round-robin in one process after warm-ups; min and median are reported.
 The last lines print each speed ratio (baseline median / ours median) as ``name: value``.
@@ -31,7 +32,14 @@ import torch
 from torch import nn
 
 from benchmarks._timing import Timing, environment_header, format_ms, time_interleaved
-from sb3_hieros.nn.s5 import S5Layer, S5Stack, _interleave, associative_scan_resettable, compile_s5
+from sb3_hieros.nn.s5 import (
+    S5Layer,
+    S5Stack,
+    _interleave,
+    associative_scan_resettable,
+    compile_s5,
+    resettable_scan,
+)
 
 Elements = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
@@ -128,6 +136,9 @@ def s5_variants(
     flag = reset.float().unsqueeze(-1)
 
     def ours_scan() -> torch.Tensor:
+        return resettable_scan(torch.view_as_complex(lambda_bar_param), keep, torch.view_as_complex(bu_param))
+
+    def ours_scan_autograd() -> torch.Tensor:
         return associative_scan_resettable(
             torch.view_as_complex(lambda_bar_param), keep, torch.view_as_complex(bu_param)
         )
@@ -142,6 +153,7 @@ def s5_variants(
         "GRUCell loop": _fwd_bwd(gru_cell_loop),
         "nn.GRU (fused)": _fwd_bwd(lambda: gru(x)[0]),
         "scan (ours)": _fwd_bwd(ours_scan),
+        "scan (ours, autograd bwd)": _fwd_bwd(ours_scan_autograd),
         "scan (reference style)": _fwd_bwd(reference_scan),
         f"S5Stack ({n_stack} layers)": _fwd_bwd(lambda: stack(x, reset)[0]),
     }
@@ -178,12 +190,15 @@ def run_s5(args: argparse.Namespace) -> None:
         timings: dict[str, Timing] = time_interleaved(variants, warmup=args.warmup, reps=args.reps)
         print(f"\nT={length}")
         for name, timing in timings.items():
-            print(f"  {name:<24} {format_ms(timing)}")
+            print(f"  {name:<26} {format_ms(timing)}")
         s5 = timings["S5Layer"].median
         ratios[f"s5_vs_grucell_T{length}"] = timings["GRUCell loop"].median / s5
         ratios[f"s5_vs_gru_fused_T{length}"] = timings["nn.GRU (fused)"].median / s5
         ratios[f"scan_vs_reference_scan_T{length}"] = (
             timings["scan (reference style)"].median / timings["scan (ours)"].median
+        )
+        ratios[f"scan_vs_autograd_backward_T{length}"] = (
+            timings["scan (ours, autograd bwd)"].median / timings["scan (ours)"].median
         )
         if args.compile:
             ratios[f"s5_compiled_vs_eager_T{length}"] = s5 / timings["S5Layer (compile_s5)"].median

@@ -104,3 +104,13 @@ def test_world_model_speedup_needed():
     assert world_model_speedup_needed(s5, 6.0, 12.0, 1.5, ("imagination", "acting")) == pytest.approx(1.2)
     # the other parts alone take longer than the goal allows
     assert world_model_speedup_needed(s5, 6.0, 12.0, 3.0) == float("inf")
+
+
+def test_s5_table_runs_on_tiny_sizes_and_prints_every_ratio(capsys):
+    from benchmarks.speed import main
+
+    main(["s5", "--reps", "1", "--warmup", "0", "--threads", "1", "--lengths", "8", "--d-model", "8", "--d-state", "4"])
+    main_out = capsys.readouterr().out
+    for name in ("s5_vs_grucell_T8", "scan_vs_reference_scan_T8", "scan_vs_autograd_backward_T8"):
+        assert f"{name}: " in main_out
+    assert "scan (ours, autograd bwd)" in main_out
