@@ -6,7 +6,8 @@ public constructor keywords both sides accept (``preset``, ``config_overrides`` 
 writes one JSON object: per case, SHA-256 digests of every parameter and buffer, of every optimiser state, of the
 replay of every level, of a prediction after training and of the global random states, and the counters.
 
-Usage: ``python benchmarks/_equivalence_cases.py --out result.json [--cases a b ...] [--steps N]``
+Usage: ``python benchmarks/_equivalence_cases.py --out result.json [--cases a b ...] [--steps N] [--save-dir D]`` or,
+to fingerprint models saved with ``--save-dir`` (by any revision) after loading them, ``... --load-dir D``.
 """
 
 from __future__ import annotations
@@ -140,6 +141,9 @@ CASES: dict[str, dict[str, Any]] = {
         extrinsic_reward_levels="top",
         imag_start_fraction=1.0,
     ),
+    "dropout_paper_heads": _case(
+        "MlpPolicy", "CartPole-v1", world_model={"dropout": 0.1}, actor_critic={"units": 16, "layers": 2}
+    ),
     "rssm_reference": _case(
         "MlpPolicy", "CartPole-v1", n_envs=2, world_model={"kind": "rssm"}, reference=REFERENCE_BEHAVIOUR
     ),
@@ -229,31 +233,16 @@ def _probe(space: spaces.Space) -> Any:
     return rng.uniform(-1.0, 1.0, (2, *space.shape)).astype(space.dtype)
 
 
-def run_case(name: str, steps: int) -> dict[str, Any]:
-    """Build the case's model (seed 0), learn ``steps`` steps and fingerprint the outcome.
-
-    :param name: a key of :data:`CASES`
-    :param steps: environment steps of ``learn``
-    :return: the fingerprint (JSON-serialisable)
-    """
+def _env(name: str) -> Any:
     from stable_baselines3.common.env_util import make_vec_env
 
-    import sb3_hieros
-    from sb3_hieros import HIEROS
-
     spec = CASES[name]
-    env = make_vec_env(spec["env"], n_envs=spec["n_envs"], seed=0)
-    model = HIEROS(
-        spec["policy"],
-        env,
-        preset="small",
-        config_overrides=spec["overrides"],
-        batch_size=2,
-        learning_starts=20,
-        buffer_size=500,
-        seed=0,
-    )
-    model.learn(steps)
+    return make_vec_env(spec["env"], n_envs=spec["n_envs"], seed=0)
+
+
+def _fingerprint(model: Any) -> dict[str, Any]:
+    import sb3_hieros
+
     params = {_normalise(key): _digest(value) for key, value in model.policy.state_dict().items()}
     optimizers = {}
     for path in model._get_torch_save_params()[0]:
@@ -272,17 +261,66 @@ def run_case(name: str, steps: int) -> dict[str, Any]:
     }
 
 
+def run_case(name: str, steps: int, save_dir: str | None = None) -> dict[str, Any]:
+    """Build the case's model (seed 0), learn ``steps`` steps and fingerprint the outcome.
+
+    :param name: a key of :data:`CASES`
+    :param steps: environment steps of ``learn``
+    :param save_dir: also save the model as ``<save_dir>/<name>.zip``
+    :return: the fingerprint (JSON-serialisable)
+    """
+    from sb3_hieros import HIEROS
+
+    spec = CASES[name]
+    model = HIEROS(
+        spec["policy"],
+        _env(name),
+        preset="small",
+        config_overrides=spec["overrides"],
+        batch_size=2,
+        learning_starts=20,
+        buffer_size=500,
+        seed=0,
+    )
+    model.learn(steps)
+    fingerprint = _fingerprint(model)
+    if save_dir is not None:
+        model.save(f"{save_dir}/{name}.zip")
+    return fingerprint
+
+
+def load_case(name: str, load_dir: str) -> dict[str, Any]:
+    """Load ``<load_dir>/<name>.zip`` (saved by :func:`run_case`, possibly by another revision) and fingerprint it
+    (the replay is not saved, so its part is left out).
+
+    :param name: a key of :data:`CASES`
+    :param load_dir: directory of the saves
+    :return: the fingerprint without ``replay`` and ``rng``
+    """
+    from sb3_hieros import HIEROS
+
+    model = HIEROS.load(f"{load_dir}/{name}.zip", env=_env(name))
+    fingerprint = _fingerprint(model)
+    del fingerprint["replay"], fingerprint["rng"]
+    return fingerprint
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, help="JSON file for the fingerprints")
     parser.add_argument("--cases", nargs="+", default=sorted(CASES), help="cases to run (default: all)")
     parser.add_argument("--steps", type=int, default=64, help="environment steps of learn per case")
+    parser.add_argument("--save-dir", default=None, help="also save each trained model as <dir>/<case>.zip")
+    parser.add_argument("--load-dir", default=None, help="fingerprint the saves in this directory instead of learning")
     args = parser.parse_args(argv)
     th.set_num_threads(1)
     results: dict[str, Any] = {}
     for name in args.cases:
         try:
-            results[name] = run_case(name, args.steps)
+            if args.load_dir is None:
+                results[name] = run_case(name, args.steps, args.save_dir)
+            else:
+                results[name] = load_case(name, args.load_dir)
         except Exception as error:  # reported per case, the other cases still run
             results[name] = {"error": f"{type(error).__name__}: {error}"}
     with open(args.out, "w") as handle:

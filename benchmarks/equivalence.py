@@ -6,7 +6,9 @@ with and without the replay context, RSSM with the reference-compat switches) on
 ``sb3_hieros`` and once with the one of ``--ref`` (checked out into a temporary git worktree, removed afterwards),
 each in a fresh interpreter on one torch thread. Per case it prints whether the parameters and buffers, the
 optimiser states, the counters (steps, updates per level), the replay of every level, a prediction after training and
-the global random states are identical, and names what differs. The exit code is 1 if any case differs or fails.
+the global random states are identical, and names what differs. The models trained at the ref are also saved and
+loaded here: their parameters, optimiser states, counters and predictions must match too. The exit code is 1 if any
+case differs or fails.
 
 Both sides build their models with ``preset``, ``config_overrides`` and SB3's standard keywords only, so the cases
 run on revisions with other constructor keywords; parameter and optimiser names are compared without a
@@ -37,18 +39,29 @@ def _case_names() -> list[str]:
     return sorted(CASES)
 
 
-def fingerprints(root: pathlib.Path, cases: Sequence[str], steps: int, timeout: float | None = None) -> dict[str, Any]:
+def fingerprints(
+    root: pathlib.Path,
+    cases: Sequence[str],
+    steps: int,
+    timeout: float | None = None,
+    save_dir: pathlib.Path | None = None,
+    load_dir: pathlib.Path | None = None,
+) -> dict[str, Any]:
     """Run the cases with the ``sb3_hieros`` of the tree at ``root`` in a fresh interpreter.
 
     :param root: a tree of this repository (the working tree or a temporary checkout)
     :param cases: case names
     :param steps: environment steps of ``learn`` per case
     :param timeout: seconds for all cases together, or None
+    :param save_dir: also save every trained model there
+    :param load_dir: instead of training, load the models saved there and fingerprint them
     :return: case -> fingerprint (or ``{"error": ...}``)
     """
     with tempfile.TemporaryDirectory(prefix="sb3-hieros-equivalence-") as tmp:
         out = pathlib.Path(tmp) / "fingerprints.json"
         args = ["--out", str(out), "--steps", str(steps), "--cases", *cases]
+        args += [] if save_dir is None else ["--save-dir", str(save_dir)]
+        args += [] if load_dir is None else ["--load-dir", str(load_dir)]
         result = _gitref.run_script(root, CASES_SCRIPT, args, timeout=timeout)
         if result.returncode != 0 or not out.exists():
             raise RuntimeError(f"the cases failed to run with {root}/sb3_hieros:\n{result.stderr[-4000:]}")
@@ -139,12 +152,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     root = _gitref.repo_root()
     print(f"working tree {root} against {args.ref} ({commit[:12]}): {len(cases)} cases, {args.steps} steps each")
     here = fingerprints(root, cases, args.steps, args.timeout)
-    with _gitref.checkout(commit, root) as tree:
-        there = fingerprints(tree, cases, args.steps, args.timeout)
+    with tempfile.TemporaryDirectory(prefix="sb3-hieros-saves-") as saves:
+        with _gitref.checkout(commit, root) as tree:
+            there = fingerprints(tree, cases, args.steps, args.timeout, save_dir=pathlib.Path(saves))
+        loaded = fingerprints(root, cases, args.steps, args.timeout, load_dir=pathlib.Path(saves))
     lines, same = compare(here, there)
     print("\n".join(lines))
-    print("all identical" if same else "NOT identical")
-    return 0 if same else 1
+    saved = {name: {k: v for k, v in fp.items() if k not in ("replay", "rng")} for name, fp in there.items()}
+    load_lines, load_same = compare(loaded, saved)
+    print(f"models saved at {args.ref}, loaded here:")
+    print("\n".join("  " + line for line in load_lines))
+    print("all identical" if same and load_same else "NOT identical")
+    return 0 if same and load_same else 1
 
 
 if __name__ == "__main__":
