@@ -6,7 +6,7 @@ Loads a saved model (e.g. ``results/demo/model.zip`` from ``make demo``), plays 
 * how each episode ended: the cart left the track (``|x| > x_threshold``), the pole fell
   (``|theta| > theta_threshold``), or the 500-step time limit;
 * per bin of the cart position |x|, level 0's mean predicted continue probability and extrinsic value
-  (:meth:`sb3_hieros.agent.subactor.Subactor.state_estimates` at the posterior state after each observation, with
+  (:meth:`sb3_hieros.policies.HierosPolicy.state_estimates` at the posterior state after each observation, with
   the subgoal in force).
 
 ``--reset-every R`` restarts the agent's hierarchical recurrent state every R steps (the env goes on), as if a new
@@ -67,17 +67,13 @@ def play(
         (each ``(T,)``) and the end cause
     """
     obs, _ = env.reset(seed=seed)
-    policy = model.policy
-    level0 = policy.subactor(0)
     state = None
     seen, estimates = [], defaultdict(list)
     while True:
         t = len(seen)
         start = np.array([t == 0 or (reset_every > 0 and t % reset_every == 0)])
         action, state = model.predict(obs[None], state=state, episode_start=start, deterministic=deterministic)
-        hier = policy.state_from_numpy(state, 1)
-        subgoal = hier.actions[1] if len(hier.actions) > 1 else None
-        for name, value in level0.state_estimates(hier.latents[0], subgoal).items():
+        for name, value in model.policy.state_estimates(state).items():
             estimates[name].append(float(value[0]))
         seen.append(obs)
         obs, _, terminated, truncated, _ = env.step(int(action[0]))

@@ -125,7 +125,7 @@ def main(argv: list[str] | None = None) -> dict:
         "preset": args.preset,
         "seed": args.seed,
         "steps": int(model.num_timesteps),
-        "level_updates": list(model._level_updates or []),
+        "level_updates": model.level_updates(),
         "wall_time_s": round(wall, 1),
         "seconds_per_env_step": round(wall / max(model.num_timesteps, 1), 4),
         "final_eval_mean_return": float(results[-1].mean()),

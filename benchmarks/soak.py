@@ -84,7 +84,7 @@ class SoakCallback(BaseCallback):
 
     def sample(self) -> None:
         rss, hwm, threads = process_status()
-        updates = int(self.model._n_updates)  # type: ignore[attr-defined]
+        updates = self.model.level_updates()[0]  # type: ignore[attr-defined]
         self.samples.append(Sample(self.num_timesteps, rss, hwm, open_fds(), threads, self.all_full(), updates))
 
     def _on_training_start(self) -> None:
@@ -176,7 +176,7 @@ def main() -> None:
         "CartPole-v1",
         preset="small",
         buffer_size=args.buffer_size,
-        train_ratio=args.train_ratio,
+        config_overrides={} if args.train_ratio is None else {"train_ratio": args.train_ratio},
         learning_starts=args.learning_starts,
         seed=args.seed,
     )
@@ -197,8 +197,8 @@ def main() -> None:
             row = f"{s.step:>7} {s.rss_mib:>9.1f} {s.hwm_mib:>10.1f} {s.fds:>5} {s.threads:>8} {s.full!s:>5}"
             print(f"{row} {s.updates:>8}")
     print(
-        f"{model.num_timesteps} steps, {model._n_updates} level-0 updates, level updates {model._level_updates}, "
-        f"skipped {model._skipped_updates}, wall {wall:.0f} s"
+        f"{model.num_timesteps} steps, {model.level_updates()[0]} level-0 updates, level updates "
+        f"{model.level_updates()}, skipped {model.skipped_updates()}, wall {wall:.0f} s"
     )
     for line in summarize(samples, args.tolerance):
         print(line)

@@ -228,20 +228,18 @@ def build_agent(game: str, world_model: str, seed: int, learning_starts: int | N
         preset="small",
         seed=seed,
         learning_starts=learning_starts,
-        n_levels=n_levels,
-        config_overrides={"world_model": {"kind": world_model}},
+        config_overrides={"world_model": {"kind": world_model}, **({} if n_levels is None else {"n_levels": n_levels})},
     )
 
 
 class PhaseClock:
     """Wall time of the parts of ``HIEROS.learn``, measured by wrapping methods of one model's instances.
 
-    Wrapped (instance attributes shadowing the methods; benchmark use only, the model is not saved): the model's
-    ``_sample_action`` (acting: every level's observation step and actor) and ``train``, and each level's
-    ``train_step``, ``world_model_step`` and ``_imagine`` where it has them. :meth:`phases` derives disjoint parts
-    of the wall time from them. In the shared-world-model ablation (no level ``train_step``) level 0's world-model
-    step is still counted as ``world_model``; its imagination and actor-critic updates fall into
-    ``replay_and_rest``.
+    Wrapped (instance attributes shadowing the methods; benchmark use only, the model is not saved): the hierarchy's
+    ``step`` (acting: every level's observation step and actor) and ``train_step`` (one update of every level that is
+    due), the model's ``train`` (replay sampling, replay context and logging around it), each level's
+    ``world_model_step`` and each world model's ``rollout`` (imagination). :meth:`phases` derives disjoint parts of
+    the wall time from them; the shared-world-model ablation is measured the same way.
 
     :param model: a ``HIEROS`` model
     """
@@ -251,16 +249,14 @@ class PhaseClock:
     def __init__(self, model: Any) -> None:
         self.seconds: defaultdict[str, float] = defaultdict(float)
         self._in_train_step = False
-        self._wrap(model, "_sample_action", "acting")
+        hierarchy = model.policy.hierarchy
+        self._wrap(hierarchy, "step", "acting")
         self._wrap(model, "train", "train")
-        for level in model.policy.levels:
-            for name, key in (
-                ("train_step", "train_step"),
-                ("world_model_step", "world_model"),
-                ("_imagine", "imagination"),
-            ):
-                if hasattr(level, name):  # the shared-world-model ablation's upper levels have none
-                    self._wrap(level, name, key)
+        self._wrap(hierarchy, "train_step", "train_step")
+        for level in hierarchy.levels:
+            if hasattr(level, "world_model"):  # the shared-world-model ablation's upper levels have none
+                self._wrap(level, "world_model_step", "world_model")
+                self._wrap(level.world_model, "rollout", "imagination")
 
     def _wrap(self, owner: Any, name: str, key: str) -> None:
         method = getattr(owner, name)
@@ -289,7 +285,7 @@ class PhaseClock:
         """Disjoint parts of ``wall`` seconds of ``learn``, in seconds.
 
         :param wall: wall time of the ``learn`` calls measured since the last :meth:`reset`
-        :return: :data:`PHASES` -> seconds: ``actor_critic_ae`` = the levels' ``train_step`` less the world-model
+        :return: :data:`PHASES` -> seconds: ``actor_critic_ae`` = the hierarchy's ``train_step`` less the world-model
             steps and imaginations inside it; ``replay_and_rest`` = ``train`` less ``train_step`` and less any
             world-model step or imagination outside it (replay sampling, replay context, logging);
             ``env_and_rest`` = ``wall`` less acting and ``train`` (environment steps, replay writes, callbacks)
@@ -349,7 +345,7 @@ def run_agent(args: argparse.Namespace) -> None:
         for _ in range(args.warmup):
             model.learn(args.segment, reset_num_timesteps=False)
     clocks = {name: PhaseClock(model) for name, model in models.items()}
-    before = {name: list(model._level_updates) for name, model in models.items()}
+    before = {name: model.level_updates() for name, model in models.items()}
     variants = {
         name: (lambda model=model: model.learn(args.segment, reset_num_timesteps=False))
         for name, model in models.items()
@@ -357,7 +353,7 @@ def run_agent(args: argparse.Namespace) -> None:
     timings: dict[str, Timing] = time_interleaved(variants, warmup=0, reps=args.rounds)
     for name, timing in timings.items():
         updates = [
-            (now - then) / args.rounds for now, then in zip(models[name]._level_updates, before[name], strict=True)
+            (now - then) / args.rounds for now, then in zip(models[name].level_updates(), before[name], strict=True)
         ]
         print(
             f"  {name:<5} segment {timing.min:7.2f} / {timing.median:7.2f} s (min / median), env steps/s "

@@ -140,7 +140,7 @@ def run_one(run: Run) -> dict[str, Any]:
         "episode_end_steps": ends,
         "episode_returns": [float(r) for r in monitor.get_episode_rewards()],
         "wall_s": round(time.perf_counter() - start, 1),
-        "updates": list(model._level_updates or []),
+        "updates": model.level_updates(),
     }
 
 

@@ -39,7 +39,7 @@ import gymnasium as gym
 from stable_baselines3.common.save_util import json_to_data, open_path
 
 from benchmarks.suites import DMC_VISION_TASKS, make_env
-from sb3_hieros import HIEROS
+from sb3_hieros import HIEROS, get_preset
 
 __all__ = [
     "HYPERPARAMS_FILE",
@@ -91,13 +91,15 @@ def sample_hieros_params(trial: Any, n_actions: int, n_envs: int, additional_arg
     :param n_actions: size of the action space (unused)
     :param n_envs: number of envs (unused)
     :param additional_args: the zoo's extra arguments (unused)
-    :return: HIEROS keywords
+    :return: HIEROS keywords (``learning_rate`` and ``config_overrides``)
     """
     return {
         "learning_rate": trial.suggest_float("learning_rate", 1e-4, 3e-3, log=True),
-        "train_ratio": trial.suggest_categorical("train_ratio", [16, 32, 64, 128, 256]),
-        "imag_horizon": trial.suggest_categorical("imag_horizon", [8, 16]),
-        "subgoal_interval": trial.suggest_categorical("subgoal_interval", [4, 8]),
+        "config_overrides": {
+            "train_ratio": trial.suggest_categorical("train_ratio", [16, 32, 64, 128, 256]),
+            "imag_horizon": trial.suggest_categorical("imag_horizon", [8, 16]),
+            "subgoal_interval": trial.suggest_categorical("subgoal_interval", [4, 8]),
+        },
     }
 
 
@@ -114,7 +116,10 @@ class EnjoyHIEROS(HIEROS):
         if "buffer_size" not in kwargs:
             with zipfile.ZipFile(open_path(path, "r", verbose=0, suffix="zip")) as archive:
                 data = json_to_data(archive.read("data").decode())
-            kwargs["buffer_size"] = int(data["batch_length"]) * max(1, int(data.get("n_envs", 1)))  # one chunk
+            length = data.get("batch_length")  # saves of models built when it was a constructor keyword
+            if length is None:
+                length = get_preset(data["preset"]).replace(**data.get("config_overrides", {})).batch_length
+            kwargs["buffer_size"] = int(length) * max(1, int(data.get("n_envs", 1)))  # one chunk
         return HIEROS.load(path, env=env, device=device, custom_objects=custom_objects, **kwargs)
 
 

@@ -39,70 +39,18 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import Image, TensorBoardOutputFormat
 
-from sb3_hieros.agent.world_model import stack_states
+from sb3_hieros.agent.world_model import LatentState, WorldModel
 from sb3_hieros.buffers import SequenceReplayBuffer
-from sb3_hieros.policies import HierarchyState, HierosPolicy
+from sb3_hieros.type_aliases import Observation
 
-__all__ = [
-    "ImaginationCallback",
-    "SubgoalDecodeCallback",
-    "decode_subgoals",
-    "imagine_open_loop",
-    "recent_window",
-]
+__all__ = ["ImaginationCallback", "SubgoalDecodeCallback", "imagine_open_loop", "recent_window"]
 
 #: Observation entries of at most this many dimensions are shown in the vector plots of ImaginationCallback.
 MAX_PLOTTED_DIMS = 16
 
-Observation = th.Tensor | dict[str, th.Tensor]
-
-
 # ----------------------------------------------------------------------------------------------------------------------
 # Decoding and imagination (no RL bookkeeping)
 # ----------------------------------------------------------------------------------------------------------------------
-
-
-@th.no_grad()
-def decode_subgoals(policy: HierosPolicy, state: HierarchyState) -> list[Observation]:
-    """Decode the subgoal in force from every level i >= 1 into the environment's observation space (thesis 4.3.2,
-    last paragraph).
-
-    Level i's subgoal (its action ``state.actions[i]``) goes through level i-1's autoencoder decoder into level i-1's
-    h space (eq. 4.1); together with the current stochastic state z of level i-1 the world-model decoder of level i-1
-    turns it into level i-1's observation. Above level 1 that observation is k stacked world states ``[h, z]`` of
-    level i-2 (or only the newest, ablation 5.3.6); the last of them is decoded by level i-2's world model, and so on
-    down to level 0, whose decoder gives an environment observation. The decoded z of a lower level is used as it comes
-    out of the decoder (a soft vector, not snapped to one-hot). With one shared world model (ablation 5.3.1) every
-    level's subgoal is decoded into level 0's h space and turned into an observation by level 0's world model.
-
-    :param policy: the HIEROS policy (``n_levels >= 2`` for a non-empty result)
-    :param state: the hierarchy state, e.g. ``model._hier`` during training
-    :return: per level i = 1 .. n_levels - 1 (list index i - 1), the decoded observation of every env:
-        (n, *obs_shape) (images as float pixels in [0, 255]) or a dict of such tensors for Dict spaces
-    """
-    if not isinstance(state, HierarchyState):
-        raise ValueError(f"state must be a HierarchyState, got {type(state).__name__}")
-    if len(state.actions) != policy.n_levels:
-        raise ValueError(f"state holds {len(state.actions)} levels, but the policy has n_levels={policy.n_levels}")
-    n = state.n_envs
-    decoded: list[Observation] = []
-    if not policy.hierarchical_world_models:  # ablation 5.3.1: every subgoal lives in level 0's h space
-        level0 = policy.subactor(0)
-        for level in range(1, policy.n_levels):
-            h = policy.subactor(level - 1).decode_subgoal(state.actions[level])  # (n, D_0)
-            decoded.append(level0.decode_state_observation(h, state.latents[0].stoch))
-        return decoded
-    for level in range(1, policy.n_levels):
-        below = policy.subactor(level - 1)
-        h = below.decode_subgoal(state.actions[level])  # (n, D_{i-1})
-        obs = below.decode_state_observation(h, state.latents[level - 1].stoch)
-        for j in range(level - 2, -1, -1):
-            lower = policy.subactor(j)
-            assert isinstance(obs, th.Tensor)  # higher levels observe flat vectors
-            last = obs.reshape(n, -1, lower.latent_dim)[:, -1]  # (n, D_j + Z_j): the newest of the k states
-            obs = lower.decode_state_observation(last[:, : lower.h_dim], last[:, lower.h_dim :])
-        decoded.append(obs)
-    return decoded
 
 
 def recent_window(buffer: SequenceReplayBuffer, env: int, context: int, horizon: int) -> np.ndarray | None:
@@ -123,7 +71,7 @@ def recent_window(buffer: SequenceReplayBuffer, env: int, context: int, horizon:
     stored = int(buffer.stored_steps()[env])
     if stored < length:
         return None
-    order = (int(buffer._oldest_rows()[env]) + np.arange(stored)) % buffer.buffer_size  # (stored,) oldest first
+    order = (int(buffer.oldest_rows()[env]) + np.arange(stored)) % buffer.buffer_size  # (stored,) oldest first
     starts = np.concatenate([[0], np.cumsum(buffer.is_first[order, env], dtype=np.int64)])
     first = np.arange(stored - length + 1)  # candidate window starts
     clean = starts[first + length] - starts[first + context] == 0  # no episode start in the imagined part
@@ -136,16 +84,17 @@ def recent_window(buffer: SequenceReplayBuffer, env: int, context: int, horizon:
 
 @th.no_grad()
 def imagine_open_loop(
-    policy: HierosPolicy,
+    world_model: WorldModel,
     observations: Observation,
     prev_actions: th.Tensor,
     is_first: th.Tensor,
     context: int,
 ) -> tuple[Observation, Observation]:
-    """Level 0's world model on a real chunk: posterior over the first ``context`` steps, then open-loop imagination
-    of the remaining steps with the recorded actions (thesis 4.4.3, Fig. 5.1). Modes instead of samples.
+    """A world model on a real chunk: posterior over the first ``context`` steps, then open-loop imagination of the
+    remaining steps with the recorded actions (thesis 4.4.3, Fig. 5.1; :meth:`WorldModel.rollout`). Modes instead of
+    samples.
 
-    :param policy: the HIEROS policy
+    :param world_model: e.g. level 0's, ``model.policy.hierarchy.levels[0].world_model``
     :param observations: (B, T, *obs_shape) (a dict of them for Dict spaces), as the model sees them (normalised
         under VecNormalize)
     :param prev_actions: (B, T, A) float action vectors, row t = a_{t-1} (the action that led to o_t)
@@ -157,18 +106,20 @@ def imagine_open_loop(
     length = int(is_first.shape[1])
     if not 1 <= context < length:
         raise ValueError(f"context must lie in [1, {length}) for chunks of {length} steps, got {context}")
-    wm = policy.subactor(0).world_model
     if isinstance(observations, Mapping):
         seen: Observation = {key: value[:, :context] for key, value in observations.items()}
     else:
         seen = observations[:, :context]
-    post, _ = wm.observe(seen, prev_actions[:, :context], is_first[:, :context], deterministic=True)
-    state = post.select((slice(None), context - 1))  # (B,)
-    imagined = []
-    for t in range(context, length):
-        state, _ = wm.img_step(state, prev_actions[:, t], deterministic=True)  # consumes a_{t-1}, gives s_t
-        imagined.append(state)
-    return wm.decode(post), wm.decode(stack_states(imagined, 1))
+    post, _ = world_model.observe(seen, prev_actions[:, :context], is_first[:, :context], deterministic=True)
+
+    def recorded(t: int, state: LatentState) -> th.Tensor | None:
+        # row C + t holds a_{C+t-1}, which leads from s_{C+t-1} to s_{C+t}
+        return prev_actions[:, context + t] if context + t < length else None
+
+    start = post.select((slice(None), context - 1))  # (B,)
+    states, _ = world_model.rollout(start, length - context, recorded, deterministic=True)
+    imagined = states.select(slice(1, None)).map_fields(lambda x: x.transpose(0, 1))  # (B, T - C)
+    return world_model.decode(post), world_model.decode(imagined)
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -330,7 +281,7 @@ class SubgoalDecodeCallback(_PeriodicDrawingCallback):
     One picture per shown env: images as a grid with one column per level (observation | level-1 subgoal |
     level-2 subgoal ...) and one row per image key; vector observations as a plot of the decoded vectors against
     the real one (all entries of the flattened vector). The real observation is the one the hierarchy has just
-    encoded (``model._last_obs``, normalised under VecNormalize like the decoded ones). PNGs are named
+    encoded (:meth:`HIEROS.decoded_subgoals`, normalised under VecNormalize like the decoded ones). PNGs are named
     ``subgoals_<step>_env<j>.png``, TensorBoard tags ``subgoals/env<j>``. A one-level model has no subgoals: the
     callback warns once and does nothing.
 
@@ -359,7 +310,7 @@ class SubgoalDecodeCallback(_PeriodicDrawingCallback):
         super()._init_callback()
         if self.n_envs_shown > self.model.n_envs:
             raise ValueError(f"n_envs_shown={self.n_envs_shown} exceeds the model's n_envs={self.model.n_envs}")
-        self._disabled = self.model.policy.n_levels < 2
+        self._disabled = self.model.policy.hierarchy.n_levels < 2
         if self._disabled and not self._warned:
             warnings.warn(
                 "SubgoalDecodeCallback: the model has n_levels=1, so there are no subgoals to decode; the callback "
@@ -371,14 +322,14 @@ class SubgoalDecodeCallback(_PeriodicDrawingCallback):
 
     def _draw(self) -> None:
         model = self.model
-        state: HierarchyState | None = model._hier
-        if state is None or model._last_obs is None:
+        snapshot = model.decoded_subgoals()
+        if snapshot is None:
             return
-        policy: HierosPolicy = model.policy
-        spec = policy.subactor(0).world_model.spec
+        observation, subgoals = snapshot
+        spec = model.policy.hierarchy.levels[0].world_model.spec
         keys = list(spec.shapes)
-        decoded = [_as_numpy_dict(obs, keys, spec.is_dict) for obs in decode_subgoals(policy, state)]
-        real = _as_numpy_dict(model._last_obs, keys, spec.is_dict)
+        decoded = [_as_numpy_dict(obs, keys, spec.is_dict) for obs in subgoals]
+        real = _as_numpy_dict(observation, keys, spec.is_dict)
         for env in range(self.n_envs_shown):
             image = self._picture(
                 env, spec.image_keys, spec.vector_keys, real, decoded, f"step {self.num_timesteps}, env {env}"
@@ -470,29 +421,17 @@ class ImaginationCallback(_PeriodicDrawingCallback):
         rows = recent_window(buffer, 0, self.context, self.horizon)
         if rows is None:
             return
-        policy: HierosPolicy = model.policy
-        sub = policy.subactor(0)
-        spec = sub.world_model.spec
+        level0 = model.policy.hierarchy.levels[0]
+        spec = level0.world_model.spec
         keys = list(spec.shapes)
-        arrays = buffer._obs_arrays()
-        raw = {key: arrays[key if spec.is_dict else ""][rows, 0][None] for key in keys}  # (1, T, *shape)
-        seen = buffer._normalize_obs(raw if spec.is_dict else raw[keys[0]], model._vec_normalize_env)
-        device = policy.device
-        obs: Observation
-        if isinstance(seen, dict):
-            obs = {key: th.as_tensor(value, device=device) for key, value in seen.items()}
-        else:
-            obs = th.as_tensor(seen, device=device)
-        first = buffer.is_first[rows, 0]  # (T,)
-        stored_actions = buffer.actions[rows, 0].copy()  # (T, action_dim), row t = a_{t-1}
-        stored_actions[first] = 0  # episode starts hold placeholders (as SequenceReplayBuffer.sample does)
-        is_first = th.as_tensor(first[None], device=device)
-        actions = sub.action_vectors(th.as_tensor(stored_actions[None], device=device), is_first)  # (1, T, A)
-        recon, imagined = imagine_open_loop(policy, obs, actions, is_first, self.context)
+        chunk = buffer.chunk(0, rows, model.get_vec_normalize_env())  # (1, T, ...), placeholder actions zeroed
+        actions = level0.action_vectors(chunk.actions, chunk.is_first)  # (1, T, A)
+        obs = chunk.observations
+        recon, imagined = imagine_open_loop(level0.world_model, obs, actions, chunk.is_first, self.context)
         recon_np = _as_numpy_dict(recon, keys, spec.is_dict)
         imagined_np = _as_numpy_dict(imagined, keys, spec.is_dict)
         predicted = {key: np.concatenate([recon_np[key], imagined_np[key]], 1)[0] for key in keys}  # (T, *shape)
-        real = {key: value[0] for key, value in _as_numpy_dict(seen, keys, spec.is_dict).items()}  # (T, *shape)
+        real = {key: value[0] for key, value in _as_numpy_dict(obs, keys, spec.is_dict).items()}  # (T, *shape)
         self.last_errors = {}
         for key in keys:
             diff = predicted[key][self.context :] - real[key][self.context :]

@@ -10,6 +10,7 @@ Every value not given explicitly to :class:`~sb3_hieros.HIEROS` comes from the c
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -480,6 +481,35 @@ def small_config() -> HierosConfig:
 
 
 PRESETS = {"paper": paper_config, "small": small_config}
+
+
+def config_from_dict(config: Mapping[str, Any] | HierosConfig | None) -> HierosConfig:
+    """A :class:`HierosConfig` from its ``dataclasses.asdict`` form (what a saved policy holds), or the paper preset.
+
+    :param config: a HierosConfig, a dict of its fields (nested sections as dicts), or None for the ``"paper"`` preset
+    :return: the configuration
+    """
+    if config is None:
+        return get_preset("paper")
+    if isinstance(config, HierosConfig):
+        return config
+    if not isinstance(config, Mapping):
+        raise ValueError(f"config must be a HierosConfig, a dict of its fields or None, got {type(config).__name__}")
+    sections = {
+        "world_model": WorldModelConfig,
+        "actor_critic": ActorCriticConfig,
+        "subgoal": SubgoalConfig,
+        "reference": ReferenceCompatConfig,
+    }
+    names = {f.name for f in dataclasses.fields(HierosConfig)}
+    unknown = set(config) - names
+    if unknown:
+        raise ValueError(f"config has unknown fields {sorted(unknown)}; expected some of {sorted(names)}")
+    values = dict(config)
+    for name, cls in sections.items():
+        if name in values and isinstance(values[name], Mapping):
+            values[name] = cls(**values[name])
+    return HierosConfig(**values)
 
 
 def get_preset(name: str) -> HierosConfig:

@@ -49,23 +49,30 @@ TINY_OVERRIDES: dict[str, Any] = {
 }
 
 
+#: HierosConfig fields that :func:`tiny_kwargs` takes as keywords and puts into ``config_overrides``
+CONFIG_KEYWORDS = ("batch_length", "imag_horizon", "n_levels", "subgoal_interval", "train_ratio", "etbs_temperature")
+
+
 def tiny_kwargs(**changes: Any) -> dict[str, Any]:
     """Constructor keywords of a tiny HIEROS (0.25 level-0 updates per env step after 20 random steps).
+
+    ``config_overrides`` replaces :data:`TINY_OVERRIDES`; the fields of :data:`CONFIG_KEYWORDS` given as keywords
+    (default: the tiny run's batch_length 8, imag_horizon 3, n_levels 2, subgoal_interval 2, train_ratio 4) are put
+    into it and win over it, None leaves the field to ``config_overrides`` and the preset.
 
     :param changes: keywords to replace or add
     :return: keywords for ``HIEROS(policy, env, **kwargs)``
     """
+    fields: dict[str, Any] = dict(batch_length=8, imag_horizon=3, n_levels=2, subgoal_interval=2, train_ratio=4.0)
+    fields.update({name: changes.pop(name) for name in CONFIG_KEYWORDS if name in changes})
+    overrides = dict(changes.pop("config_overrides", TINY_OVERRIDES))
+    overrides.update({name: value for name, value in fields.items() if value is not None})
     kwargs: dict[str, Any] = dict(
         preset="small",
-        config_overrides=TINY_OVERRIDES,
+        config_overrides=overrides,
         batch_size=2,
-        batch_length=8,
-        imag_horizon=3,
         learning_starts=20,
         buffer_size=500,
-        n_levels=2,
-        subgoal_interval=2,
-        train_ratio=4.0,
         seed=0,
     )
     kwargs.update(changes)

@@ -17,16 +17,11 @@ from sb3_hieros.ablations import (
     ablation_overrides,
     merge_overrides,
 )
-from sb3_hieros.agent import shared
 from sb3_hieros.agent.actor_critic import ActorCritic, lambda_returns
-from sb3_hieros.agent.shared import SharedLevel, start_windows
-from sb3_hieros.agent.subactor import Subactor
+from sb3_hieros.agent.shared import SharedLevel, SharedWorldModelHierarchy, start_windows
+from sb3_hieros.agent.subactor import Subactor, current_action_alignment
 from sb3_hieros.agent.world_model import RSSMWorldModel, S5WorldModel
-from sb3_hieros.buffers import SequenceSamples
-from sb3_hieros.callbacks import decode_subgoals
 from sb3_hieros.config import REFERENCE_BEHAVIOUR, get_preset
-from sb3_hieros.hieros import current_action_alignment
-from sb3_hieros.policies import ImaginationSubgoals
 
 K = 2  # subgoal_interval of the tiny models
 NO_TRAINING = 10**9
@@ -94,7 +89,7 @@ def test_every_ablation_trains(name):
         world_model={"lr": model.config.world_model.lr},
     )
     assert model.config == expected
-    assert model._level_updates[0] > 0
+    assert model.level_updates()[0] > 0
 
 
 # ---------------------------------------------------------------------------------------------------------- 5.3.1
@@ -104,15 +99,15 @@ def test_shared_world_model_builds_levels_without_world_models():
     hier = model_with(n_levels=3, hierarchical_world_models=False)
     base = model_with(n_levels=3)
     policy = hier.policy
-    level0 = policy.subactor(0)
+    level0 = policy.hierarchy.levels[0]
     assert isinstance(level0, Subactor)
-    assert all(isinstance(policy.levels[i], SharedLevel) for i in (1, 2))
-    assert not any(hasattr(policy.levels[i], "world_model") for i in (1, 2))
+    assert all(isinstance(policy.hierarchy.levels[i], SharedLevel) for i in (1, 2))
+    assert not any(hasattr(policy.hierarchy.levels[i], "world_model") for i in (1, 2))
     assert n_params(policy) < n_params(base.policy)
     # level i observes the last k**i world states of level 0
     for i in (1, 2):
-        assert policy.levels[i].observation_space.shape == (K**i * level0.latent_dim,)
-        assert policy.history_length(i) == K**i
+        assert policy.hierarchy.levels[i].observation_space.shape == (K**i * level0.latent_dim,)
+        assert policy.hierarchy.history_length(i) == K**i
     assert len(hier.level_buffers()) == 1 and len(base.level_buffers()) == 3
     assert "level1/stoch" not in policy.state_names() and "level1/history" in policy.state_names()
     # acting threads the state and refuses nothing
@@ -125,17 +120,17 @@ def test_shared_world_model_builds_levels_without_world_models():
 def test_shared_world_model_trains_all_levels_in_level_zero_imagination(monkeypatch):
     model = model_with(n_levels=3, hierarchical_world_models=False)  # imag_horizon 4: level 2 acts at t = 0, 4
     calls = []
-    original = shared.train_shared_hierarchy
+    original = SharedWorldModelHierarchy.train_step
 
-    def spy(levels, samples, config):
-        out = original(levels, samples, config)
-        calls.append(out)
+    def spy(self, batches):
+        out = original(self, batches)
+        calls.append([update.metrics for update in out])
         return out
 
-    monkeypatch.setattr("sb3_hieros.hieros.train_shared_hierarchy", spy)
+    monkeypatch.setattr(SharedWorldModelHierarchy, "train_step", spy)
     monkeypatch.setattr(Subactor, "train_step", lambda *a, **k: pytest.fail("hierarchical training was called"))
     model.learn(36)
-    assert calls and model._level_updates == [len(calls)] * 3
+    assert calls and model.level_updates() == [len(calls)] * 3
     level0, level1, level2 = calls[-1]
     assert "wm/loss" in level0 and "wm/loss" not in level1
     assert level1["n_steps"] == 4 // K and level2["n_steps"] == 4 // K**2  # one step every k**i imagined steps
@@ -146,11 +141,11 @@ def test_shared_world_model_trains_all_levels_in_level_zero_imagination(monkeypa
 
 def test_shared_world_model_trains_box_actions_by_dynamics_backpropagation():
     model = model_with("Pendulum-v1", hierarchical_world_models=False)
-    assert model.policy.subactor(0).imag_gradient == "dynamics"
-    actor = model.policy.subactor(0).actor_critic.actor
+    assert model.policy.hierarchy.levels[0].imag_gradient == "dynamics"
+    actor = model.policy.hierarchy.levels[0].actor_critic.actor
     before = [p.detach().clone() for p in actor.parameters()]
     model.learn(30)
-    assert model._level_updates == [model._level_updates[0]] * 2 and model._level_updates[0] > 0
+    assert model.level_updates() == [model.level_updates()[0]] * 2 and model.level_updates()[0] > 0
     assert any(not th.equal(a, b) for a, b in zip(before, actor.parameters(), strict=True))
 
 
@@ -164,11 +159,13 @@ def test_start_windows_hold_the_last_states_of_the_same_episode():
 def test_shared_world_model_save_load_and_decode(tmp_path):
     model = model_with(n_levels=3, hierarchical_world_models=False)
     model.learn(30)
-    decoded = decode_subgoals(model.policy, model._hier)
+    decoded = model.decoded_subgoals()[1]
     assert len(decoded) == 2 and all(d.shape == (1, 4) for d in decoded)
     model.save(tmp_path / "shared")
     loaded = HIEROS.load(tmp_path / "shared")
-    assert not loaded.policy.hierarchical_world_models
+    assert not loaded.config.hierarchical_world_models and isinstance(
+        loaded.policy.hierarchy, SharedWorldModelHierarchy
+    )
     for a, b in zip(model.policy.parameters(), loaded.policy.parameters(), strict=True):
         assert th.equal(a, b)
 
@@ -177,15 +174,15 @@ def test_shared_world_model_save_load_and_decode(tmp_path):
 
 
 def test_rssm_replay_depth_and_deter_switches_change_their_modules():
-    assert isinstance(model_with(world_model={"kind": "rssm"}).policy.subactor(0).world_model, RSSMWorldModel)
-    assert isinstance(model_with().policy.subactor(0).world_model, S5WorldModel)
+    assert isinstance(model_with(world_model={"kind": "rssm"}).policy.hierarchy.levels[0].world_model, RSSMWorldModel)
+    assert isinstance(model_with().policy.hierarchy.levels[0].world_model, S5WorldModel)
     for mode in ("etbs", "uniform", "reference", "count"):
         assert all(b.mode == mode for b in model_with(replay=mode).level_buffers())
     for depth in (1, 4):
         model = model_with(n_levels=depth)
-        assert len(model.policy.levels) == depth and len(model.level_buffers()) == depth
-    state = model_with().policy.subactor(0).world_model
-    output = model_with(world_model={"deter_from": "output"}).policy.subactor(0).world_model
+        assert len(model.policy.hierarchy.levels) == depth and len(model.level_buffers()) == depth
+    state = model_with().policy.hierarchy.levels[0].world_model
+    output = model_with(world_model={"deter_from": "output"}).policy.hierarchy.levels[0].world_model
     wm = TINY_OVERRIDES["world_model"]
     assert state.deter_out.in_features == 2 * wm["s5_layers"] * wm["s5_state_dim"]
     assert output.deter_out.in_features == wm["s5_model_dim"]
@@ -198,15 +195,15 @@ def test_last_state_only_shrinks_the_higher_observation_and_stores_the_newest_st
     env = DummyVecEnv([lambda: CountingEnv(length=None)])
     model = model_with(env, higher_level_input="last", learning_starts=NO_TRAINING)
     full = model_with(DummyVecEnv([lambda: CountingEnv(length=None)]))
-    latent = model.policy.subactor(0).latent_dim
-    assert model.policy.subactor(1).observation_space.shape == (latent,)
-    assert full.policy.subactor(1).observation_space.shape == (K * latent,)
-    assert n_params(model.policy.subactor(1)) < n_params(full.policy.subactor(1))
+    latent = model.policy.hierarchy.levels[0].latent_dim
+    assert model.policy.hierarchy.levels[1].observation_space.shape == (latent,)
+    assert full.policy.hierarchy.levels[1].observation_space.shape == (K * latent,)
+    assert n_params(model.policy.hierarchy.levels[1]) < n_params(full.policy.hierarchy.levels[1])
     model.learn(8)  # steps t = 0..7; level 1 writes rows at t = 0, 2, 4, 6
     buffer = model.level_buffers()[1]
     n = int(buffer.stream_pos[0])
     assert n == 4 and buffer.observations.shape[-1] == latent
-    history = model._hier.histories[0][0]  # (k, D): level-0 states of t = 6, 7
+    history = model.hierarchy_state.histories[0][0]  # (k, D): level-0 states of t = 6, 7
     assert np.allclose(buffer.observations[n - 1, 0], history[-2].numpy())  # the newest state at t = 6 only
 
 
@@ -216,49 +213,49 @@ def test_last_state_only_shrinks_the_higher_observation_and_stores_the_newest_st
 def test_small_s5_and_decoded_subgoals_change_the_sizes():
     base = model_with(n_levels=None, world_model={"s5_layers": 2})
     small = model_with(n_levels=None, world_model={"s5_layers": 1})
-    assert len(small.policy.subactor(0).world_model.sequence_model.blocks) == 1
+    assert len(small.policy.hierarchy.levels[0].world_model.sequence_model.blocks) == 1
     assert n_params(small.policy) < n_params(base.policy)
-    code = model_with().policy.subactor(0)
-    decoded = model_with(decoded_subgoal_input=True).policy.subactor(0)
-    alias = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(policy_kwargs={"decoded_subgoal_input": True}))
+    code = model_with().policy.hierarchy.levels[0]
+    decoded = model_with(decoded_subgoal_input=True).policy.hierarchy.levels[0]
     assert decoded.feat_dim - code.feat_dim == code.h_dim - code.subgoal_dim
-    assert alias.policy.subactor(0).feat_dim == decoded.feat_dim
+    with pytest.raises(ValueError, match="config_overrides"):  # one way to set it
+        HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(policy_kwargs={"decoded_subgoal_input": True}))
 
 
 # ---------------------------------------------------------------------------------------------------------- 5.3.9
 
 
-def test_update_subgoals_calls_the_level_above_every_k_imagined_steps(monkeypatch):
+def test_update_subgoals_calls_the_level_above_every_k_imagined_steps():
     model = model_with(update_subgoals_in_imagination=True)
-    level0 = model.policy.subactor(0)
-    assert isinstance(level0.imagination_subgoal_fn, ImaginationSubgoals)
-    assert model_with().policy.subactor(0).imagination_subgoal_fn is None
+    hierarchy = model.policy.hierarchy
+    level0 = hierarchy.levels[0]
+    assert hierarchy.replan_of(0) is not None and hierarchy.replan_of(1) is None  # the top level has none
+    assert model_with().policy.hierarchy.replan_of(0) is None
     calls = []
-    real = level0.imagination_subgoal_fn
+    real = hierarchy.replan
 
-    def record(window, subgoal, carry):
+    def record(level, window, subgoal, carry):
         calls.append((tuple(window.shape), carry is None))
-        return real(window, subgoal, carry)
+        return real(level, window, subgoal, carry)
 
-    level0.imagination_subgoal_fn = record
+    hierarchy.replan = record
     model.learn(24)
     horizon = model.config.imag_horizon
     per_rollout = horizon // K  # at t = k, 2k, ... <= H
-    assert len(calls) == per_rollout * model._level_updates[0]
+    assert len(calls) == per_rollout * model.level_updates()[0]
     assert all(shape[1:] == (K, level0.latent_dim) for shape, _ in calls)
     assert [first for _, first in calls[:per_rollout]] == [True] + [False] * (per_rollout - 1)
 
 
 def test_imagined_subgoals_replace_the_replay_subgoal_in_the_subgoal_reward():
     model = model_with(update_subgoals_in_imagination=True)
-    level0 = model.policy.subactor(0)
+    level0 = model.policy.hierarchy.levels[0]
     code_a = th.zeros(6, level0.subgoal_dim)
     code_a[:, ::4] = 1.0  # one class per group
     code_b = code_a.roll(1, -1)
-    level0.imagination_subgoal_fn = lambda window, subgoal, carry: (code_b, carry)
     start = level0.initial_state(6)
     with th.no_grad():
-        *_, targets = level0._imagine_updating_subgoals(start, code_a)
+        targets = level0.imagine(start, code_a, lambda window, subgoal, carry: (code_b, carry)).targets
     decoded_a, decoded_b = level0.decode_subgoal(code_a), level0.decode_subgoal(code_b)
     horizon = model.config.imag_horizon
     # s_0..s_k are rewarded against the replay subgoal, later states against the re-planned one
@@ -269,15 +266,15 @@ def test_imagined_subgoals_replace_the_replay_subgoal_in_the_subgoal_reward():
 
 def test_imagination_subgoals_of_a_three_level_policy_thread_the_carry():
     model = model_with(n_levels=3, update_subgoals_in_imagination=True)
-    updater = model.policy.subactor(0).imagination_subgoal_fn
-    level0 = model.policy.subactor(0)
+    updater = model.policy.hierarchy.replan_of(0)
+    level0 = model.policy.hierarchy.levels[0]
     window = th.randn(5, K, level0.latent_dim)
     subgoal = th.zeros(5, level0.subgoal_dim)
     new, carry = updater(window, subgoal, None)
     assert new.shape == (5, level0.subgoal_dim)
-    assert th.all(new.reshape(5, -1, model.policy.subactor(1).action_classes).sum(-1) == 1)
+    assert th.all(new.reshape(5, -1, model.policy.hierarchy.levels[1].action_classes).sum(-1) == 1)
     state, own_goal = carry
-    assert own_goal is not None and own_goal.shape == (5, model.policy.subactor(1).subgoal_dim)
+    assert own_goal is not None and own_goal.shape == (5, model.policy.hierarchy.levels[1].subgoal_dim)
     _, (state2, own_goal2) = updater(window, new, carry)
     assert own_goal2 is own_goal and not th.equal(state2.deter, state.deter)
 
@@ -287,24 +284,25 @@ def test_imagination_subgoals_of_a_three_level_policy_thread_the_carry():
 
 def test_reward_switches_change_the_critics():
     top = model_with(n_levels=3, extrinsic_reward_levels="top").policy
-    assert [top.subactor(i).reward_terms for i in range(3)] == [
+    assert [top.hierarchy.levels[i].reward_terms for i in range(3)] == [
         ("subgoal", "novelty"),
         ("subgoal", "novelty"),
         ("extrinsic", "novelty"),
     ]
     default = model_with(n_levels=3).policy
-    assert all("extrinsic" in default.subactor(i).reward_terms for i in range(3))
+    assert all("extrinsic" in default.hierarchy.levels[i].reward_terms for i in range(3))
     no_novelty = model_with(actor_critic={"novelty_weight": 0.0}).policy
-    assert all("novelty" not in no_novelty.subactor(i).actor_critic.critics for i in range(2))
+    assert all("novelty" not in no_novelty.hierarchy.levels[i].actor_critic.critics for i in range(2))
     shared_top = model_with(hierarchical_world_models=False, extrinsic_reward_levels="top").policy
-    assert shared_top.subactor(0).reward_terms == ("subgoal", "novelty")
-    assert shared_top.levels[1].reward_terms == ("extrinsic", "novelty")
+    assert shared_top.hierarchy.levels[0].reward_terms == ("subgoal", "novelty")
+    assert shared_top.hierarchy.levels[1].reward_terms == ("extrinsic", "novelty")
 
 
 def test_extrinsic_top_only_keeps_the_extrinsic_return_out_of_level_zero():
     model = model_with(extrinsic_reward_levels="top")
     model.learn(30)
-    level0, level1 = (model.policy.subactor(i).train_step(b.sample(2)) for i, b in enumerate(model.level_buffers()))
+    buffers = model.level_buffers()
+    level0, level1 = (model.policy.hierarchy.levels[i].train_step(b.sample(2)).metrics for i, b in enumerate(buffers))
     assert "return/subgoal" in level0 and "return/extrinsic" not in level0
     assert "return/extrinsic" in level1
 
@@ -313,10 +311,10 @@ def test_actor_extras_switch_removes_three_inputs():
     with_extras = model_with().policy
     without = model_with(actor_critic={"actor_extras": False}).policy
     for i in range(2):
-        assert with_extras.subactor(i).feat_dim - without.subactor(i).feat_dim == 3
+        assert with_extras.hierarchy.levels[i].feat_dim - without.hierarchy.levels[i].feat_dim == 3
     shared_without = model_with(hierarchical_world_models=False, actor_critic={"actor_extras": False}).policy
     shared_with = model_with(hierarchical_world_models=False).policy
-    assert shared_with.levels[1].feat_dim - shared_without.levels[1].feat_dim == 3
+    assert shared_with.hierarchy.levels[1].feat_dim - shared_without.hierarchy.levels[1].feat_dim == 3
 
 
 # ---------------------------------------------------------------------------------------------------------- reference
@@ -325,8 +323,7 @@ def test_actor_extras_switch_removes_three_inputs():
 def test_current_action_alignment_moves_a_t_to_row_t():
     actions = th.arange(1, 7, dtype=th.float32).reshape(1, 6, 1)  # row t holds a_{t-1} = t + 1
     is_first = th.tensor([[True, False, False, True, False, False]])
-    samples = SequenceSamples(th.zeros(1, 6, 2), actions, th.zeros(1, 6), is_first, th.zeros(1, 6, dtype=th.bool), None)
-    shifted = current_action_alignment(samples, actions).actions[0, :, 0]
+    shifted = current_action_alignment(actions, is_first)[0, :, 0]
     # row 0 is an episode start (zeroed), row 2 precedes a start (its a_t is a placeholder), row 5 is the last
     assert shifted.tolist() == [0.0, 3.0, 0.0, 0.0, 6.0, 0.0]
 
@@ -335,14 +332,14 @@ def test_reference_action_alignment_feeds_the_world_model_the_current_action(mon
     seen = []
     for alignment in ("previous", "current"):
         model = model_with(n_levels=1, reference={"action_alignment": alignment})
-        wm = model.policy.subactor(0).world_model
-        original = wm.train_step
+        level0 = model.policy.hierarchy.levels[0]
+        original = level0.world_model_step
 
-        def spy(batch, *args, original=original, alignment=alignment, **kwargs):
+        def spy(batch, context, original=original, alignment=alignment):
             seen.append((alignment, batch.actions.clone(), batch.is_first.clone()))
-            return original(batch, *args, **kwargs)
+            return original(batch, context)
 
-        monkeypatch.setattr(wm, "train_step", spy)
+        monkeypatch.setattr(level0, "world_model_step", spy)
         th.manual_seed(0)
         model.learn(30)
     prev = [a for name, a, _ in seen if name == "previous"]
@@ -402,7 +399,9 @@ def test_reference_behaviour_constant_sets_all_three():
     config = get_preset("small").replace(reference=REFERENCE_BEHAVIOUR)
     assert (config.reference.action_alignment, config.reference.reinforce_advantage) == ("current", "raw")
     assert config.reference.terminal_reward == "zeroed"
-    assert model_with(reference=REFERENCE_BEHAVIOUR).policy.subactor(0).actor_critic.reinforce_advantage == "raw"
+    assert (
+        model_with(reference=REFERENCE_BEHAVIOUR).policy.hierarchy.levels[0].actor_critic.reinforce_advantage == "raw"
+    )
 
 
 # ---------------------------------------------------------------------------------------------------------- invalid
@@ -443,5 +442,5 @@ def test_invalid_combinations_raise_with_reasons():
         small.replace(higher_level_input="first")
     with pytest.raises(ValueError, match="must be a bool"):
         small.replace(hierarchical_world_models="no")
-    with pytest.raises(ValueError, match="decoded_subgoal_input=True needs a hierarchy"):
+    with pytest.raises(ValueError, match="decoded_subgoal_input is not a policy keyword"):
         HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(n_levels=1, policy_kwargs={"decoded_subgoal_input": True}))

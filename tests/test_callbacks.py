@@ -18,7 +18,7 @@ from stable_baselines3.common.logger import configure
 
 from sb3_hieros import HIEROS, ImaginationCallback, SubgoalDecodeCallback
 from sb3_hieros.buffers import SequenceReplayBuffer
-from sb3_hieros.callbacks import decode_subgoals, recent_window
+from sb3_hieros.callbacks import recent_window
 
 pytest.importorskip("matplotlib")
 from matplotlib.image import imread
@@ -107,7 +107,7 @@ def test_decode_subgoals_every_depth(n_levels, tmp_path):
         model.learn(10, callback=callback, reset_num_timesteps=False)
     said = [w for w in caught if "n_levels=1" in str(w.message)]
     assert len(said) == (1 if n_levels == 1 else 0)
-    decoded = decode_subgoals(model.policy, model._hier)
+    decoded = model.decoded_subgoals()[1]
     assert len(decoded) == n_levels - 1
     for obs in decoded:
         assert obs.shape == (1, 3, 16, 16) and obs.dtype == th.float32
@@ -119,18 +119,18 @@ def test_decode_subgoals_every_depth(n_levels, tmp_path):
 def test_decode_chain_goes_through_each_level():
     model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(n_levels=3))
     model.learn(30)
-    policy, hier = model.policy, model._hier
-    sub0, sub1 = policy.subactor(0), policy.subactor(1)
+    policy, hier = model.policy, model.hierarchy_state
+    sub0, sub1 = policy.hierarchy.levels[0], policy.hierarchy.levels[1]
     # the split of a decoded higher-level observation relies on the world state being [h, z]
     th.testing.assert_close(
         sub0.encoded_observation(hier.latents[0]), th.cat([hier.latents[0].deter, hier.latents[0].stoch], -1)
     )
-    level1, level2 = decode_subgoals(policy, hier)
+    level1, level2 = policy.hierarchy.decode_subgoals(hier)
     th.testing.assert_close(
         level1, sub0.decode_state_observation(sub0.decode_subgoal(hier.actions[1]), hier.latents[0].stoch)
     )
     stacked = sub1.decode_state_observation(sub1.decode_subgoal(hier.actions[2]), hier.latents[1].stoch)
-    last = stacked.reshape(1, policy.subgoal_interval, sub0.latent_dim)[:, -1]
+    last = stacked.reshape(1, policy.hierarchy.subgoal_interval, sub0.latent_dim)[:, -1]
     th.testing.assert_close(level2, sub0.decode_state_observation(last[:, : sub0.h_dim], last[:, sub0.h_dim :]))
     assert level1.shape == level2.shape == (1, 4)
 
@@ -156,7 +156,7 @@ def test_draws_only_on_its_steps():
 def _parameters_after_learning(callbacks) -> dict[str, th.Tensor]:
     model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(seed=5, n_levels=3, learning_starts=10))
     model.learn(40, callback=callbacks)
-    assert model._n_updates > 0 and model._level_updates[2] > 0
+    assert model._n_updates > 0 and model.level_updates()[2] > 0
     state = {f"policy.{k}": v.clone() for k, v in model.policy.state_dict().items()}
     state.update({f"level{i}.rewards": th.as_tensor(b.rewards.copy()) for i, b in enumerate(model.level_buffers())})
     return state
@@ -229,7 +229,7 @@ def test_reward_terms_are_logged_per_level(tmp_path):
     model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(learning_starts=10))
     model.set_logger(configure(str(tmp_path), ["csv"]))
     model.learn(60, log_interval=1)
-    assert model._level_updates[1] > 0
+    assert model.level_updates()[1] > 0
     header = (tmp_path / "progress.csv").read_text().splitlines()[0].split(",")
     for key in ("level0/reward/extrinsic", "level0/reward/subgoal", "level0/reward/novelty", "level1/reward/extrinsic"):
         assert f"train/{key}" in header, key

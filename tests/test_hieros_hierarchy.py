@@ -85,7 +85,7 @@ def test_rows_flags_and_rewards_around_episode_ends(truncate):
     model = make_model([make(length) for length in lengths])
     n_steps = 30
     model.learn(len(lengths) * n_steps)
-    latent_dims = [model.policy.subactor(i).latent_dim for i in range(3)]
+    latent_dims = [model.policy.hierarchy.levels[i].latent_dim for i in range(3)]
     for level in (1, 2):
         buffer = model.level_buffers()[level]
         for env, length in enumerate(lengths):
@@ -96,7 +96,7 @@ def test_rows_flags_and_rewards_around_episode_ends(truncate):
             )
             assert got == expected, f"level {level}, env {env}"
             # nothing is lost: the rewards not yet written wait in this env's running sum
-            assert model._reward_sums[level][env] == pytest.approx(pending)
+            assert model._rows.reward_sums[level][env] == pytest.approx(pending)
             # an episode's first row sees only its first state: the slots from before the reset are zero
             slot = latent_dims[level - 1]
             obs = rows["obs"].reshape(len(got), K, slot)

@@ -19,9 +19,10 @@ from stable_baselines3.common.callbacks import CheckpointCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, VecCheckNan
 
-import sb3_hieros.buffers as buffers_module
+import sb3_hieros.buffers.sequence as buffers_module
 from sb3_hieros import HIEROS
 from sb3_hieros.buffers import ETBSReplayBuffer, SequenceReplayBuffer
+from sb3_hieros.buffers.levels import level_buffer_size
 
 
 class NanEnv(gym.Env):
@@ -69,8 +70,8 @@ class NanEnv(gym.Env):
 def _adam_steps(model: HIEROS) -> list[float]:
     """Adam's step count of the first parameter of every optimiser (an optimiser state that must survive resume)."""
     steps = []
-    for i in range(model.n_levels):
-        for opt in model.policy.subactor(i).optimizers.values():
+    for i in range(model.config.n_levels):
+        for opt in model.policy.hierarchy.levels[i].optimizers.values():
             state = opt.state[opt.param_groups[0]["params"][0]]
             steps.append(float(state["step"]) if state else 0.0)
     return steps
@@ -88,7 +89,7 @@ def test_resume_continues_where_it_stopped(tmp_path):
 
     stopped = HIEROS("MlpPolicy", "CartPole-v1", **kwargs)
     stopped.learn(50)
-    assert all(n > 0 for n in stopped._level_updates)  # every level trains before the stop
+    assert all(n > 0 for n in stopped.level_updates())  # every level trains before the stop
     stopped.save(tmp_path / "model.zip")
     stopped.save_replay_buffer(tmp_path / "replay.pkl")
     sizes = [b.size() for b in stopped.level_buffers()]
@@ -98,7 +99,7 @@ def test_resume_continues_where_it_stopped(tmp_path):
     # the schedule counters, the optimiser states and every level's replay come back
     assert resumed.num_timesteps == 50
     assert resumed._n_updates == stopped._n_updates
-    assert resumed._level_updates == stopped._level_updates
+    assert resumed.level_updates() == stopped.level_updates()
     assert resumed._update_budget == stopped._update_budget
     assert _adam_steps(resumed) == _adam_steps(stopped)
     assert [b.size() for b in resumed.level_buffers()] == sizes
@@ -110,7 +111,7 @@ def test_resume_continues_where_it_stopped(tmp_path):
     # training neither restarts (warm-up, burst of catch-up updates) nor waits: the same updates as without the stop
     assert resumed.num_timesteps == straight.num_timesteps == 70
     assert resumed._n_updates == straight._n_updates
-    assert resumed._level_updates == straight._level_updates
+    assert resumed.level_updates() == straight.level_updates()
     assert _adam_steps(resumed) == _adam_steps(straight)
 
 
@@ -183,19 +184,20 @@ def test_nonfinite_batch_changes_nothing():
     states stay as they were, and the next finite batch trains as usual."""
     model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(n_levels=1))
     model.learn(40)
-    sub = model.policy.subactor(0)
-    imagine = sub._imagine
+    sub = model.policy.hierarchy.levels[0]
+    imagine = sub.imagine
 
-    def nan_imagine(start: Any, goal_feat: Any) -> Any:
-        traj, feats, actions, reward, cont = imagine(start, goal_feat)
-        return traj._replace(deter=traj.deter * float("nan")), feats, actions, reward * float("nan"), cont
+    def nan_imagine(start: Any, codes: Any, replan: Any = None) -> Any:
+        imagined = imagine(start, codes, replan)
+        states = imagined.states._replace(deter=imagined.states.deter * float("nan"))
+        return imagined._replace(states=states, rewards=imagined.rewards * float("nan"))
 
     before = {k: v.clone() for k, v in sub.state_dict().items()}
     adam = _adam_steps(model)
     samples = model.replay_buffer.sample(2)
     samples.rewards[0, 3] = float("nan")  # world-model loss
-    sub._imagine = nan_imagine  # type: ignore[method-assign]  # actor, critic (returns) and autoencoder losses
-    metrics = sub.train_step(samples)
+    sub.imagine = nan_imagine  # type: ignore[method-assign]  # actor, critic (returns) and autoencoder losses
+    metrics = sub.train_step(samples).metrics
     for name in ("world_model", "actor", "critic", "autoencoder"):
         assert metrics[f"nonfinite/{name}"] == 1.0, name
     assert not np.isfinite(metrics["wm/loss"]) and not np.isfinite(metrics["actor/loss"])
@@ -204,8 +206,8 @@ def test_nonfinite_batch_changes_nothing():
         assert th.isfinite(value).all(), key
     assert _adam_steps(model) == adam
 
-    del sub._imagine
-    metrics = sub.train_step(model.replay_buffer.sample(2))
+    del sub.imagine
+    metrics = sub.train_step(model.replay_buffer.sample(2)).metrics
     assert all(metrics[f"nonfinite/{n}"] == 0.0 for n in ("world_model", "actor", "critic", "autoencoder"))
     assert _adam_steps(model) == [a + 1 for a in adam]
     assert any(not th.equal(value, before[key]) for key, value in sub.state_dict().items())
@@ -215,12 +217,12 @@ def test_nan_inside_the_world_model_is_skipped_not_raised():
     """A NaN born inside the network (here the encoder's output, before the S5 stack) is a skipped update."""
     model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(n_levels=1))
     model.learn(40)
-    sub = model.policy.subactor(0)
+    sub = model.policy.hierarchy.levels[0]
     before = {k: v.clone() for k, v in sub.world_model.state_dict().items()}
     encoder = sub.world_model.encoder
     original = encoder.forward
     encoder.forward = lambda *args, **kwargs: original(*args, **kwargs) * float("nan")  # type: ignore[method-assign]
-    metrics = sub.train_step(model.replay_buffer.sample(2))
+    metrics = sub.train_step(model.replay_buffer.sample(2)).metrics
     assert metrics["nonfinite/world_model"] == 1.0
     for key, value in sub.world_model.state_dict().items():
         assert th.equal(value, before[key]), key
@@ -228,8 +230,8 @@ def test_nan_inside_the_world_model_is_skipped_not_raised():
 
 def _poison_world_model(model: HIEROS, level: int, n_bad: int | None) -> None:
     """Make the first ``n_bad`` world-model losses of ``level`` NaN (all of them with None)."""
-    wm = model.policy.subactor(level).world_model
-    loss_fn = wm.loss
+    wm = model.policy.hierarchy.levels[level].world_model
+    loss_fn = wm._loss  # what the training step calls
     calls = [0]
 
     def loss(samples: Any, state: Any = None) -> Any:
@@ -237,38 +239,38 @@ def _poison_world_model(model: HIEROS, level: int, n_bad: int | None) -> None:
         calls[0] += 1
         if n_bad is None or calls[0] <= n_bad:
             value = value * float("nan")
-            metrics["loss"] = float("nan")
+            metrics["loss"] = value.detach()
         return value, metrics, post
 
-    wm.loss = loss  # type: ignore[method-assign]
+    wm._loss = loss  # type: ignore[method-assign]
 
 
 def test_nonfinite_updates_skipped_counted_then_stop():
     model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(n_levels=2, train_ratio=8.0), max_nonfinite_updates=3)
     assert model.max_nonfinite_updates == 3
     model.learn(40)
-    assert model._level_updates[1] > 0
-    frozen = {k: v.clone() for k, v in model.policy.subactor(1).world_model.state_dict().items()}
-    level0 = {k: v.clone() for k, v in model.policy.subactor(0).world_model.state_dict().items()}
+    assert model.level_updates()[1] > 0
+    frozen = {k: v.clone() for k, v in model.policy.hierarchy.levels[1].world_model.state_dict().items()}
+    level0 = {k: v.clone() for k, v in model.policy.hierarchy.levels[0].world_model.state_dict().items()}
     _poison_world_model(model, 1, None)
     with pytest.raises(FloatingPointError, match=r"level 1: 3 updates in a row .*world_model loss \(wm/loss=nan"):
         model.learn(200, reset_num_timesteps=False)
-    assert model._skipped_updates == [0, 3]
+    assert model.skipped_updates() == [0, 3]
     assert model.logger.name_to_value["train/level1/skipped_updates"] == 3
-    for key, value in model.policy.subactor(1).world_model.state_dict().items():
+    for key, value in model.policy.hierarchy.levels[1].world_model.state_dict().items():
         assert th.equal(value, frozen[key]), key  # never a step with the NaN loss
-    changed = [not th.equal(v, level0[k]) for k, v in model.policy.subactor(0).world_model.state_dict().items()]
+    changed = [not th.equal(v, level0[k]) for k, v in model.policy.hierarchy.levels[0].world_model.state_dict().items()]
     assert any(changed)  # the healthy level went on training
 
 
 def test_nonfinite_updates_streak_resets():
     model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(n_levels=2, train_ratio=8.0), max_nonfinite_updates=3)
     model.learn(40)
-    updates = model._level_updates[1]
+    updates = model.level_updates()[1]
     _poison_world_model(model, 1, 2)  # two bad updates, then finite again
     model.learn(40, reset_num_timesteps=False)
-    assert model._level_updates[1] > updates + 2
-    assert model._skipped_updates == [0, 2] and model._nonfinite_streak == [0, 0]
+    assert model.level_updates()[1] > updates + 2
+    assert model.skipped_updates() == [0, 2] and model._nonfinite_streak == [0, 0]
     with pytest.raises(ValueError, match="max_nonfinite_updates"):
         HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(), max_nonfinite_updates=0)
 
@@ -325,7 +327,7 @@ def test_load_other_algorithm_and_other_spaces(saved, tmp_path):
     with pytest.raises(ValueError, match="Action spaces do not match"):
         HIEROS.load(saved / "model.zip", env=DummyVecEnv([lambda: _CartPoleBox()]))
     with open(saved / "model.zip", "rb") as file:  # a file object is read from where it stands
-        assert HIEROS.load(file).n_levels == 2
+        assert HIEROS.load(file).config.n_levels == 2
 
 
 class _CartPoleBox(gym.Env):
@@ -376,7 +378,7 @@ def test_replay_memory_estimate_and_warning(monkeypatch, replay_context):
         arrays += [a for a in (buffer.subgoals, buffer.context, buffer.has_context) if a is not None]
         assert (buffer.context is not None) == replay_context
         estimate = SequenceReplayBuffer.estimate_nbytes(
-            model._level_buffer_size(level),
+            level_buffer_size(model.config, model.buffer_size, level, model.n_envs),
             buffer.observation_space,
             buffer.action_space,
             buffer.n_envs,

@@ -73,9 +73,9 @@ def test_policy_aliases():
 def test_hierarchy_depths_train(n_levels):
     model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(n_levels=n_levels, train_ratio=16.0))
     model.learn(60)
-    assert len(model.policy.levels) == n_levels
+    assert len(model.policy.hierarchy.levels) == n_levels
     assert len(model.level_buffers()) == n_levels
-    updates = model._level_updates
+    updates = model.level_updates()
     assert updates[0] == model._n_updates > 0
     # level i trains every k**i level-0 updates once its buffer holds a chunk
     for i in range(1, n_levels):
@@ -109,11 +109,11 @@ def test_dump_logs_records_level_metrics():
 
 def test_learning_rate_schedule_drives_world_model_lr():
     model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(learning_rate=lambda progress: 1e-4 + 1e-3 * progress))
-    assert model.policy.subactor(0).wm_optimizer.param_groups[0]["lr"] == pytest.approx(1.1e-3 * 0.5)  # warm-up
+    assert model.policy.hierarchy.levels[0].wm_optimizer.param_groups[0]["lr"] == pytest.approx(1.1e-3 * 0.5)  # warm-up
     model.learn(50)
     assert model._n_updates > 2
     # warm-up (2 updates) is over: the last update (within the last few steps) used the schedule's late value
-    lr = model.policy.subactor(0).wm_optimizer.param_groups[0]["lr"]
+    lr = model.policy.hierarchy.levels[0].wm_optimizer.param_groups[0]["lr"]
     assert 1e-4 <= lr < 3e-4
 
 
@@ -187,17 +187,23 @@ def test_unsupported_spaces_are_refused():
         HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(preset="huge"))
 
 
-def test_preset_overrides_and_explicit_keywords():
+def test_preset_overrides_and_keywords():
     model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(n_levels=None, imag_horizon=None))
-    # None takes the preset (small: 2 levels, horizon 16); explicit keywords win over config_overrides
-    assert model.n_levels == 2 and model.imag_horizon == 16
-    assert model.config.imag_horizon == 16 and model.config.batch_size == 2
-    assert model.config.world_model.s5_model_dim == 16  # from config_overrides
+    # fields left out of config_overrides come from the preset (small: 2 levels, horizon 16)
+    assert model.config.n_levels == 2 and model.config.imag_horizon == 16
+    assert model.config.batch_size == 2 and model.config.world_model.s5_model_dim == 16  # keyword, config_overrides
     assert model.gamma == model.config.actor_critic.discount
-    model = HIEROS(
-        "MlpPolicy", "CartPole-v1", **tiny_kwargs(config_overrides={"actor_critic": {"discount": 0.9}}, buffer_size=300)
-    )
-    assert model.gamma == 0.9 and model.replay_buffer.buffer_size == 300
+    # SB3's keywords win over config_overrides
+    overrides = {**TINY_OVERRIDES, "actor_critic": {"discount": 0.9}, "buffer_size": 900}
+    model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(config_overrides=overrides, buffer_size=300))
+    assert model.gamma == 0.9 and model.replay_buffer.buffer_size == 300 and model.config.buffer_size == 300
+    # every other hyperparameter is set with config_overrides only, and a keyword says so
+    with pytest.raises(ValueError, match=r"n_levels: not HIEROS constructor keywords; set them with config_overrides="):
+        HIEROS("MlpPolicy", "CartPole-v1", n_levels=3)
+    with pytest.raises(TypeError, match="unexpected keywords"):
+        HIEROS("MlpPolicy", "CartPole-v1", n_level=3)
+    with pytest.raises(ValueError, match="decoded_subgoal_input is not a policy keyword: set it with config_overrides"):
+        HIEROS("MlpPolicy", "CartPole-v1", policy_kwargs={"decoded_subgoal_input": True})
 
 
 def test_evaluate_policy():
@@ -217,26 +223,27 @@ def test_replay_context_is_stored_and_trained_from(hierarchical, monkeypatch):
     buffers = model.level_buffers()
     assert len(buffers) == (2 if hierarchical else 1)
     for i, buffer in enumerate(buffers):
-        assert buffer.context_dim == model.policy.subactor(i).world_model.context_dim > 0
+        assert buffer.context_dim == model.policy.hierarchy.levels[i].world_model.context_dim > 0
         assert buffer.has_context.any(), f"level {i} stored no context"
-    wm = model.policy.subactor(0).world_model
-    starts = []
-    train_step = wm.train_step
+    level0 = model.policy.hierarchy.levels[0]
+    contexts = []
+    world_model_step = level0.world_model_step
 
-    def spy(samples, optimizer, scheduler=None, state=None):
-        starts.append(state)
-        return train_step(samples, optimizer, scheduler, state)
+    def spy(batch, context):
+        contexts.append(context)
+        return world_model_step(batch, context)
 
-    monkeypatch.setattr(wm, "train_step", spy)
+    monkeypatch.setattr(level0, "world_model_step", spy)
     model.learn(40, reset_num_timesteps=False)
-    assert starts and all(state is not None for state in starts)
-    assert any(state.seq.abs().sum() > 0 for state in starts), "no chunk started from a stored state"
+    assert contexts and all(context is not None for context in contexts)
+    assert any(context.abs().sum() > 0 for context in contexts), "no chunk started from a stored state"
     # off (the paper preset's and HierosConfig's default): no context kept, every chunk starts from zeros
     plain_overrides = {**TINY_OVERRIDES, "replay_context": False}
     plain = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(config_overrides=plain_overrides))
     plain.learn(60)
     assert all(b.context is None and not b.has_context.any() for b in plain.level_buffers())
-    assert plain.policy.subactor(0).last_context is None
+    update = plain.policy.hierarchy.train_step([b.sample(2) for b in plain.level_buffers()])
+    assert all(u is not None and u.context is None for u in update)
 
 
 def test_seeded_runs_are_identical():
@@ -280,11 +287,11 @@ def test_vec_normalize_and_continued_learning():
     for j in np.flatnonzero(~model._last_episode_starts):
         np.testing.assert_allclose(last[j], model._last_original_obs[j])
         assert not np.allclose(last[j], model._last_obs[j])
-    steps = int(model._hier.step[0])
+    steps = int(model.hierarchy_state.step[0])
     model.learn(20, reset_num_timesteps=False)
-    assert int(model._hier.step[0]) == steps + 10  # the hierarchy carries on (no reset between learn calls)
+    assert int(model.hierarchy_state.step[0]) == steps + 10  # the hierarchy carries on (no reset between learn calls)
     model.learn(20)
-    assert int(model._hier.step[0]) == 10  # reset_num_timesteps resets the envs and the hierarchy
+    assert int(model.hierarchy_state.step[0]) == 10  # reset_num_timesteps resets the envs and the hierarchy
 
 
 def test_training_mode_and_device_shortcuts():
@@ -293,7 +300,9 @@ def test_training_mode_and_device_shortcuts():
     policy = model.policy
     policy.set_training_mode(True)
     assert all(m.training for m in policy.modules())
-    policy.subactor(0).world_model.train(False)  # a child out of step: the next switch still reaches every module
+    policy.hierarchy.levels[0].world_model.train(
+        False
+    )  # a child out of step: the next switch still reaches every module
     policy.set_training_mode(True)
     assert all(m.training for m in policy.modules())
     model.predict(np.zeros(4, np.float32))

@@ -30,7 +30,7 @@ def trained(tmp_path_factory):
     path = tmp_path_factory.mktemp("hieros")
     model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(n_levels=3, train_ratio=8.0))
     model.learn(70)
-    assert all(n > 0 for n in model._level_updates)
+    assert all(n > 0 for n in model.level_updates())
     model.save(path / "model.zip")
     model.save_replay_buffer(path / "replay.pkl")
     return model, path
@@ -54,8 +54,8 @@ def test_save_load_same_predictions_and_parameters(trained):
         for key in saved:
             assert th.equal(saved[key]["exp_avg"], restored[key]["exp_avg"])
     # hyperparameters and schedule counters come back; the hierarchy's training state is rebuilt, not saved
-    assert loaded.n_levels == 3 and loaded.config == model.config
-    assert loaded._level_updates == model._level_updates
+    assert loaded.config.n_levels == 3 and loaded.config == model.config
+    assert loaded.level_updates() == model.level_updates()
     assert loaded._hier is None
     # training resumes with an empty replay (training is guarded until level 0 can sample)
     loaded.learn(30)
@@ -67,8 +67,8 @@ def test_torch_save_params_layout(trained):
     names, variables = model._get_torch_save_params()
     assert names[0] == "policy" and names[1] == "policy.optimizer" and variables == []
     assert all("optim" in n for n in names[1:])
-    assert len(names) == 1 + 4 * model.n_levels
-    assert model.policy.optimizer is model.policy.subactor(0).wm_optimizer
+    assert len(names) == 1 + 4 * model.config.n_levels
+    assert model.policy.optimizer is model.policy.hierarchy.levels[0].wm_optimizer
     # the saved state dicts are all real-valued (the S5 parameters are stored as real pairs)
     assert not any(v.is_complex() for v in model.policy.state_dict().values())
 
@@ -118,9 +118,9 @@ def test_replay_buffer_round_trip_with_higher_levels(trained):
             np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
         assert b.device == loaded.device
     assert new[1].subgoals is not None and new[2].subgoals is None  # the top level receives no subgoal
-    updates = list(loaded._level_updates)
+    updates = list(loaded.level_updates())
     loaded.learn(20, reset_num_timesteps=False)
-    assert loaded._level_updates[0] > updates[0]
+    assert loaded.level_updates()[0] > updates[0]
     wrong = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(n_levels=2))
     with pytest.raises(ValueError, match="3 levels"):
         wrong.load_replay_buffer(path / "replay.pkl")

@@ -58,9 +58,9 @@ def test_shared_world_model_phases_stay_disjoint():
     model.learn(16, reset_num_timesteps=False)
     wall = time.perf_counter() - start
     phases = clock.phases(wall)
-    # level 0's world-model step is timed; the shared imagination and actor-critic count as replay_and_rest
-    assert phases["world_model"] > 0.0 and phases["replay_and_rest"] > 0.0
-    assert phases["imagination"] == phases["actor_critic_ae"] == 0.0
+    # level 0's world-model step, the joint imagination in its world model and the levels' actor-critic updates
+    for trained in ("world_model", "imagination", "actor_critic_ae", "replay_and_rest"):
+        assert phases[trained] > 0.0, trained
     assert all(seconds >= 0.0 for seconds in phases.values()), phases
     assert sum(phases.values()) == pytest.approx(wall)
 

@@ -7,7 +7,7 @@ import pytest
 from benchmarks.sweep import Run, TrainJob, execute, grid_jobs, run_grid, run_sweep
 
 # a few level-0 updates after 100 random steps: enough to make the records depend on training
-TINY = {"preset": "small", "learning_starts": 100, "train_ratio": 32, "buffer_size": 1000}
+TINY = {"preset": "small", "learning_starts": 100, "config_overrides": {"train_ratio": 32}, "buffer_size": 1000}
 
 
 def _strip(records):

@@ -10,6 +10,7 @@ import torch as th
 from gymnasium import spaces
 from hieros_helpers import TINY_WORLD_MODEL
 
+from sb3_hieros import HierosPolicy
 from sb3_hieros.agent.world_model import (
     LatentState,
     RSSMWorldModel,
@@ -21,6 +22,7 @@ from sb3_hieros.agent.world_model import (
     world_model_optimizer,
 )
 from sb3_hieros.config import WorldModelConfig
+from sb3_hieros.spaces import check_observation_space
 
 KINDS = ("s5", "rssm")
 TINY = TINY_WORLD_MODEL
@@ -446,16 +448,17 @@ def test_bad_inputs(kind):
         )
 
 
-def test_bad_spaces_and_config():
-    config = tiny_config("s5")
+def test_bad_spaces_are_refused_where_a_model_is_built():
+    # the world model trusts its spaces: sb3_hieros.spaces checks them once, in HierosPolicy
+    channel_last = spaces.Box(0, 255, (16, 16, 3), np.uint8)
     with pytest.raises(ValueError, match="channel-first"):
-        make_world_model(spaces.Box(0, 255, (16, 16, 3), np.uint8), 2, config)
-    with pytest.raises(ValueError, match="must be a gymnasium Box"):
-        make_world_model(spaces.Discrete(4), 2, config)
-    with pytest.raises(ValueError, match="action_dim must be a positive int"):
-        make_world_model(spaces.Box(-1, 1, (3,)), 0, config)
-    with pytest.raises(ValueError, match="config must be a WorldModelConfig"):
-        make_world_model(spaces.Box(-1, 1, (3,)), 2, {"kind": "s5"})
+        check_observation_space(channel_last)
+    with pytest.raises(ValueError, match="channel-first"):
+        HierosPolicy(channel_last, spaces.Discrete(2), lambda _: 1e-3)
+    with pytest.raises(ValueError, match=r"Discrete.*not supported by HIEROS"):
+        check_observation_space(spaces.Discrete(4))
+    with pytest.raises(ValueError, match=r"WorldModelConfig\.kind"):
+        tiny_config("s5").__class__(kind="gru")
 
 
 @pytest.mark.parametrize("kind", KINDS)

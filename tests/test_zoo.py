@@ -24,7 +24,7 @@ def test_train_then_enjoy(tmp_path, monkeypatch):
         [
             "train", "--algo", "hieros", "--env", "CartPole-v1", "-n", "600", "--seed", "1", "--num-threads", "1",
             "--eval-freq", "300", "--eval-episodes", "2", "--verbose", "0",
-            "-params", "learning_starts:560", "train_ratio:32",
+            "-params", "learning_starts:560", "config_overrides:dict(train_ratio=32)",
         ]
     )  # fmt: skip
     folder = tmp_path / "logs" / "hieros" / "CartPole-v1_1"
@@ -32,7 +32,7 @@ def test_train_then_enjoy(tmp_path, monkeypatch):
         assert (folder / name).is_file(), name
     model = HIEROS.load(folder / "CartPole-v1.zip")
     assert model.num_timesteps == 600 and model.preset == "small" and model.learning_starts == 560
-    assert sum(model._level_updates) > 0  # it trained
+    assert sum(model.level_updates()) > 0  # it trained
     assert np.load(folder / "evaluations.npz")["timesteps"].tolist() == [300, 600]
     main(["enjoy", "--algo", "hieros", "--env", "CartPole-v1", "-f", "logs", "--no-render", "-n", "60",
           "--reward-log", "rewards", "--num-threads", "1", "--deterministic"])  # fmt: skip
@@ -57,8 +57,9 @@ def test_hyperparams_file_and_registration():
         {"learning_rate": 3e-4, "train_ratio": 64, "imag_horizon": 8, "subgoal_interval": 4}
     )
     assert sample_hieros_params(trial, 2, 1, {}) == {
-        "learning_rate": 3e-4, "train_ratio": 64, "imag_horizon": 8, "subgoal_interval": 4,
-    }  # fmt: skip
+        "learning_rate": 3e-4,
+        "config_overrides": {"train_ratio": 64, "imag_horizon": 8, "subgoal_interval": 4},
+    }
 
 
 def test_atari_key_is_the_suite_protocol():

@@ -1,9 +1,9 @@
 """Ablation 5.3.1: one world model for the whole hierarchy, i.e. HIEROS without hierarchical imagination.
 
-With ``HierosConfig.hierarchical_world_models=False`` only level 0 is a full
-:class:`~sb3_hieros.agent.subactor.Subactor` (world model, actor-critic, subgoal autoencoder). Every level i >= 1 is a
-:class:`SharedLevel`: an actor-critic and a subgoal autoencoder without a world model (thesis 5.3.1: "a hierarchy of
-subactors that uses only one world model", Director-like):
+With ``HierosConfig.hierarchical_world_models=False`` the hierarchy is a :class:`SharedWorldModelHierarchy`: only
+level 0 is a full :class:`~sb3_hieros.agent.subactor.Subactor`, every level i >= 1 is a :class:`SharedLevel`, an
+actor-critic and a subgoal autoencoder without a world model (thesis 5.3.1: "a hierarchy of subactors that uses only
+one world model", Director-like):
 
 * **Observation.** Level i observes the last ``k**i`` world states ``[h, z]`` of level 0's world model, concatenated
   (thesis 5.3.1: "k^i consecutive world model states"), or only the newest of them with
@@ -12,20 +12,17 @@ subactors that uses only one world model", Director-like):
 * **Subgoals.** All subgoals live in level 0's h space: the subgoal level i+1 gives to level i is decoded by level i's
   autoencoder, which is trained on level 0's h. Level i's subgoal reward is the max-cosine of level 0's h and that
   decoded subgoal; its novelty reward is its autoencoder's reconstruction error of level 0's h.
-* **Training** (:func:`train_shared_hierarchy`, called for every level-0 update; all levels train at every update).
-  One world-model step of level 0 on the sampled chunk, then one *joint* imagination in level 0's world model from
-  all B*T posterior states: at imagined step t every level i with ``t % k**i == 0`` acts (top-down) on its window
-  of the last ``k**i`` level-0 states, so the subgoals change during imagination as they do when acting. The
-  windows of the start states come from the chunk's posterior states (zero before the chunk's first row and before
-  an episode start in the chunk, as when acting after a reset). Level i's trajectory is the imagined trajectory at
-  every ``k**i``-th step, ``M = imag_horizon // k**i`` steps long: its extrinsic reward for step m is the sum of level
-  0's predicted rewards over the ``k**i`` imagined steps, its continue the product of their continue probabilities,
-  and its subgoal and novelty rewards are taken at the arriving state. Each level then makes its own actor, critic
-  and autoencoder steps (:meth:`~sb3_hieros.agent.actor_critic.ActorCritic.loss`).
+* **Training** (:meth:`SharedWorldModelHierarchy.train_step`, at every level-0 update; all levels train at every
+  update). One world-model step of level 0 on the sampled chunk, then one *joint* imagination in level 0's world model
+  from all B*T posterior states: at imagined step t every level i with ``t % k**i == 0`` acts (top-down) on its window
+  of the last ``k**i`` level-0 states, so the subgoals change during imagination as they do when acting. The windows
+  of the start states come from the chunk's posterior states (zero before the chunk's first row and before an episode
+  start in the chunk, as when acting after a reset). Level i's trajectory is the imagined trajectory at every
+  ``k**i``-th step, ``M = imag_horizon // k**i`` steps long: its extrinsic reward for step m is the sum of level 0's
+  predicted rewards over the ``k**i`` imagined steps, its continue the product of their continue probabilities, and
+  its subgoal and novelty rewards are taken at the arriving state.
 
-Levels i >= 1 have no replay of their own (nothing is stored for them) and are not trained from replayed subgoals.
-The reference code's version of this ablation crashes (research note 8.9); its joint imagination conditions the
-higher levels on the current level-0 state only, where this one follows the thesis' k**i states.
+Levels i >= 1 have no replay of their own and are not trained from replayed subgoals.
 """
 
 from __future__ import annotations
@@ -40,21 +37,29 @@ from gymnasium import spaces
 from torch import nn
 
 from sb3_hieros.agent.actor_critic import actor_input, actor_input_dim
-from sb3_hieros.agent.subactor import (
-    Subactor,
+from sb3_hieros.agent.hierarchy import (
+    Hierarchy,
+    HierarchyState,
+    HierarchyStep,
+    _rows,
+    _scatter,
+    _take,
+)
+from sb3_hieros.agent.learning import (
     imagination_start_indices,
     learn_from_imagination,
     level_actor_critic,
     level_optimizers,
-    metric_floats,
-    subgoal_space,
 )
+from sb3_hieros.agent.subactor import Subactor
 from sb3_hieros.agent.subgoal import SubgoalAutoencoder, max_cosine_subgoal_reward, novelty_reward
 from sb3_hieros.agent.world_model import LatentState
-from sb3_hieros.buffers import SequenceSamples
 from sb3_hieros.config import HierosConfig
+from sb3_hieros.nn.metrics import metric_floats
+from sb3_hieros.spaces import stacked_state_space, subgoal_space
+from sb3_hieros.type_aliases import LevelUpdate, Observation, SequenceSamples
 
-__all__ = ["SharedLevel", "start_windows", "train_shared_hierarchy"]
+__all__ = ["SharedLevel", "SharedWorldModelHierarchy", "start_windows"]
 
 
 class SharedLevel(nn.Module):
@@ -83,13 +88,6 @@ class SharedLevel(nn.Module):
         decoded_subgoal_input: bool = False,
     ) -> None:
         super().__init__()
-        if isinstance(level, bool) or not isinstance(level, int) or level < 1:
-            raise ValueError(f"level must be an int >= 1 (level 0 is a Subactor), got {level!r}")
-        for name, value in (("state_dim", state_dim), ("h_dim", h_dim), ("stoch_dim", stoch_dim), ("window", window)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive int, got {value!r}")
-        if not stoch_dim < state_dim:
-            raise ValueError(f"stoch_dim ({stoch_dim}) must be smaller than state_dim ({state_dim})")
         ac, sg = config.actor_critic, config.subgoal
         self.config = config
         self.level = level
@@ -99,7 +97,7 @@ class SharedLevel(nn.Module):
         self.stoch_dim = stoch_dim
         self.subgoal_input = bool(subgoal_input)
         self.decoded_subgoal_input = bool(decoded_subgoal_input) and self.subgoal_input
-        self.observation_space = spaces.Box(-np.inf, np.inf, (window * state_dim,), np.float32)
+        self.observation_space = stacked_state_space(state_dim, window)
         self.action_space = subgoal_space(sg)
         self.action_kind = "discrete"
         self.action_groups = sg.n_cat
@@ -109,8 +107,7 @@ class SharedLevel(nn.Module):
         self.imag_gradient = "reinforce"  # subgoals are categorical
         self.autoencoder = SubgoalAutoencoder(h_dim, sg.n_cat, sg.n_classes, sg.units, sg.layers, sg.beta)
         goal_feat = (h_dim if self.decoded_subgoal_input else self.subgoal_dim) if self.subgoal_input else 0
-        obs_dim = window * state_dim
-        self.feat_dim = actor_input_dim(obs_dim - stoch_dim, stoch_dim, goal_feat, ac.actor_extras)
+        self.feat_dim = actor_input_dim(window * state_dim - stoch_dim, stoch_dim, goal_feat, ac.actor_extras)
         self.actor_critic = level_actor_critic(
             self.feat_dim, "discrete", sg.n_classes, sg.n_cat, "reinforce", config, self.subgoal_input
         )
@@ -135,14 +132,10 @@ class SharedLevel(nn.Module):
     def goal_features(self, subgoal: th.Tensor | None) -> th.Tensor | None:
         """What the actor sees of the received subgoal: the code, or its decoding (ablation 5.3.8); None at the top.
 
-        :param subgoal: (N, n_cat * n_classes) one-hot code or None
+        :param subgoal: (N, n_cat * n_classes) one-hot code, or None at the top level
         :return: (N, S') or None
         """
-        if not self.subgoal_input:
-            return None
-        if subgoal is None:
-            raise ValueError(f"level {self.level} takes a subgoal of shape (N, {self.subgoal_dim}), got None")
-        if not self.decoded_subgoal_input:
+        if subgoal is None or not self.decoded_subgoal_input:
             return subgoal
         with th.no_grad():
             return self.autoencoder.decode(subgoal)
@@ -165,11 +158,6 @@ class SharedLevel(nn.Module):
         :return: (N, feat_dim)
         """
         flat = window.reshape(window.shape[0], -1)
-        if flat.shape[-1] != self.window * self.state_dim:
-            raise ValueError(
-                f"window has {flat.shape[-1]} features per row, expected window*state_dim = "
-                f"{self.window}*{self.state_dim}"
-            )
         z = flat[:, -self.stoch_dim :]  # the newest state's z; the split only orders the concatenation
         return actor_input(
             flat[:, : -self.stoch_dim],
@@ -222,12 +210,6 @@ def start_windows(features: th.Tensor, is_first: th.Tensor, size: int) -> th.Ten
     :param size: window length (>= 1)
     :return: (B, T, size, F), oldest first; slot ``size - 1`` is row t itself
     """
-    if features.dim() != 3 or tuple(is_first.shape) != tuple(features.shape[:2]):
-        raise ValueError(
-            f"features must be (B, T, F) and is_first (B, T), got {tuple(features.shape)} and {tuple(is_first.shape)}"
-        )
-    if size < 1:
-        raise ValueError(f"size must be >= 1, got {size}")
     pad = th.nn.functional.pad
     windows = pad(features, (0, 0, size - 1, 0)).unfold(1, size, 1).permute(0, 1, 3, 2)  # (B, T, size, F)
     episode = th.cumsum(is_first.long(), 1)  # (B, T): episode index within the chunk
@@ -236,129 +218,242 @@ def start_windows(features: th.Tensor, is_first: th.Tensor, size: int) -> th.Ten
     return windows * valid.unsqueeze(-1)
 
 
-def train_shared_hierarchy(
-    levels: Sequence[nn.Module], samples: SequenceSamples, config: HierosConfig
-) -> list[dict[str, float]]:
-    """One training iteration of every level of a shared-world-model hierarchy (ablation 5.3.1, module docstring).
+class SharedWorldModelHierarchy(Hierarchy):
+    """:class:`~sb3_hieros.agent.hierarchy.Hierarchy` with one world model (level 0's) for all levels (ablation
+    5.3.1, module docstring). Only level 0 has a latent state and a replay; level i >= 1 keeps the last ``k**i``
+    world states of level 0 and acts every ``k**i`` steps.
 
-    :param levels: level 0 (a :class:`Subactor`) and levels 1..L-1 (:class:`SharedLevel`)
-    :param samples: a level-0 batch of chunks (B, T, ...); its ``subgoals`` are not used (imagined ones are)
-    :param config: the hierarchy's configuration (``subgoal_interval``, ``imag_horizon``, ``higher_level_input``)
-    :return: per level, its metrics (level 0 with the ``wm/*`` world-model metrics)
+    :param observation_space: the environment's observation space
+    :param action_space: the environment's action space
+    :param config: the resolved configuration (``hierarchical_world_models=False``)
+    :param bf16: bfloat16 autocast opt-in of the world model
+    :param compile: ``torch.compile`` opt-in of the world model
     """
-    level0 = levels[0]
-    if not isinstance(level0, Subactor) or not all(isinstance(lv, SharedLevel) for lv in levels[1:]):
-        raise ValueError("levels must be a Subactor followed by SharedLevels (hierarchical_world_models=False)")
-    n_levels, k, horizon = len(levels), config.subgoal_interval, config.imag_horizon
-    if n_levels < 2 or horizon < k ** (n_levels - 1):
-        raise ValueError(f"need >= 2 levels and imag_horizon >= k**(L-1), got L={n_levels}, H={horizon}, k={k}")
-    wm = level0.world_model
-    is_first = samples.is_first
-    batch = SequenceSamples(
-        samples.observations,
-        level0.action_vectors(samples.actions, is_first),
-        samples.rewards,
-        is_first,
-        samples.is_terminal,
-        None,
-    )
-    # (1) world model of level 0
-    metrics0, post = level0.world_model_step(batch, samples)
 
-    # (2) joint imagination from every posterior state
-    start = post.flatten_batch()
-    n_all = int(start.batch_shape[0])
-    first_cont = 1.0 - samples.is_terminal.reshape(n_all).float()  # (N,)
-    with th.no_grad():
-        chunk_states = wm.features(post)  # (B, T, D + G*K)
-        windows = [None] + [
-            start_windows(chunk_states, is_first, levels[i].window).reshape(n_all, levels[i].window, -1)
-            for i in range(1, n_levels)
-        ]
-    chosen = imagination_start_indices(n_all, config.imag_start_fraction, first_cont.device)
-    if chosen is not None:
-        start, first_cont = start.select(chosen), first_cont[chosen]
-        windows = [None] + [w[chosen] for w in windows[1:]]
-    n = int(start.batch_shape[0])
-    dynamics = level0.imag_gradient == "dynamics"
-    extras = config.actor_critic.actor_extras
-    with contextlib.nullcontext() if dynamics else th.no_grad(), wm.reuse_step_weights():
-        state = start
+    def _build_levels(
+        self, observation_space: spaces.Space, action_space: spaces.Space, bf16: bool, compile: bool
+    ) -> list[nn.Module]:
+        level0 = Subactor(
+            observation_space,
+            action_space,
+            self.config,
+            level=0,
+            subgoal_input=self.n_levels > 1,
+            decoded_subgoal_input=self.config.decoded_subgoal_input,
+            bf16=bf16,
+            compile=compile,
+        )
+        levels: list[nn.Module] = [level0]
+        for i in range(1, self.n_levels):
+            levels.append(
+                SharedLevel(
+                    level0.latent_dim,
+                    level0.h_dim,
+                    level0.z_dim,
+                    1 if self.last_state_only else self.history_length(i),
+                    self.config,
+                    level=i,
+                    subgoal_input=i < self.n_levels - 1,
+                    decoded_subgoal_input=self.config.decoded_subgoal_input,
+                )
+            )
+        return levels
+
+    @property
+    def replay_levels(self) -> int:
+        """Only level 0 has a replay."""
+        return 1
+
+    def has_world_model(self, level: int) -> bool:
+        """Only level 0 has a world model.
+
+        :param level: index in ``[0, n_levels)``
+        :return: ``level == 0``
+        """
+        return level == 0
+
+    def history_length(self, level: int) -> int:
+        """Level i keeps the last ``k**i`` world states of level 0.
+
+        :param level: index in ``[1, n_levels)``
+        :return: ``k**level``
+        """
+        return self.subgoal_interval**level
+
+    def _history_dim(self, level: int) -> int:
+        return self.levels[0].latent_dim
+
+    @th.no_grad()
+    def step(
+        self,
+        state: HierarchyState,
+        observation: Observation,
+        is_first: th.Tensor | np.ndarray,
+        deterministic: bool = False,
+        random_actions: Sequence[th.Tensor] | None = None,
+    ) -> tuple[HierarchyState, HierarchyStep]:
+        """:meth:`Hierarchy.step` with one world model: level 0 encodes o_t, every level i >= 1 pushes level 0's world
+        state into its window of the last ``k**i`` of them and acts every ``k**i`` steps."""
+        n = state.n_envs
+        first_host = th.as_tensor(is_first, dtype=th.bool).reshape(n)
+        masks = self._update_masks(state.step, first_host)
+        device = state.actions[0].device
+        is_first = first_host.to(device)
+        levels: Any = self.levels
+        level0 = levels[0]
+        latent = level0.observe_step(state.latents[0], observation, state.actions[0], is_first, deterministic)
+        newest = level0.encoded_observation(latent).unsqueeze(1)  # (n, 1, D + G*K)
+        keep = (~is_first).to(newest.dtype).reshape(n, 1, 1)
+        histories = tuple(th.cat([h[:, 1:] * keep, newest], 1) for h in state.histories)
+        wm = level0.world_model
+        reward, cont, entropy = wm.reward(latent), wm.cont(latent), wm.prior_entropy(latent)
+        prev_actions = tuple(state.actions)
+        actions = list(state.actions)
+        for i in reversed(range(self.n_levels)):
+            if not bool(masks[i].any()):
+                continue
+            index = self._index(masks[i], device)
+            if random_actions is not None:
+                chosen = _take(random_actions[i], index)
+            else:
+                goal = None if i == self.n_levels - 1 else _take(actions[i + 1], index)
+                if i == 0:
+                    chosen = level0.act(_rows(latent, index), goal, deterministic)
+                else:
+                    window = _take(self.observation_window(histories[i - 1]), index)
+                    extras = (_take(x, index) for x in (reward, cont, entropy))
+                    chosen = levels[i].act(window, *extras, goal, deterministic)
+            actions[i] = _scatter(actions[i], index, chosen.to(actions[i].dtype))
+        new_state = HierarchyState(state.step + 1, (latent,), tuple(actions), histories)
+        return new_state, HierarchyStep(masks, prev_actions)
+
+    def train_step(self, batches: Sequence[SequenceSamples | None]) -> list[LevelUpdate | None]:
+        """One training iteration of every level in level 0's imagination (module docstring).
+
+        :param batches: ``[batch]``, a level-0 batch of chunks (B, T, ...); its ``subgoals`` are not used (imagined
+            ones are)
+        :return: per level, its update (level 0 with the ``wm/*`` world-model metrics and the replay context)
+        """
+        (samples,) = batches
+        assert samples is not None
+        levels: Any = self.levels
+        level0: Subactor = levels[0]
+        n_levels, k, horizon = self.n_levels, self.subgoal_interval, self.config.imag_horizon
+        wm = level0.world_model
+        batch, _ = level0.training_batch(samples._replace(subgoals=None))
+        is_first = batch.is_first
+        # (1) world model of level 0
+        tensors0, post, context = level0.world_model_step(batch, samples.context)
+        lr = float(level0.wm_optimizer.param_groups[0]["lr"])
+
+        # (2) joint imagination from every posterior state (or imag_start_fraction of them)
+        start = post.flatten_batch()
+        n_all = int(start.batch_shape[0])
+        first_cont = 1.0 - batch.is_terminal.reshape(n_all).float()  # (N,)
+        with th.no_grad():
+            chunk_states = wm.features(post)  # (B, T, D + G*K)
+            windows: list[Any] = [None] + [
+                start_windows(chunk_states, is_first, levels[i].window).reshape(n_all, levels[i].window, -1)
+                for i in range(1, n_levels)
+            ]
+        chosen = imagination_start_indices(n_all, self.config.imag_start_fraction, first_cont.device)
+        if chosen is not None:
+            start, first_cont = start.select(chosen), first_cont[chosen]
+            windows = [None] + [w[chosen] for w in windows[1:]]
+        n = int(start.batch_shape[0])
+        dynamics = level0.imag_gradient == "dynamics"
+        extras = self.config.actor_critic.actor_extras
         codes: list[th.Tensor | None] = [None] * n_levels  # codes[i]: subgoal in force for level i
         feats: list[list[th.Tensor]] = [[] for _ in range(n_levels)]
         acts: list[list[th.Tensor]] = [[] for _ in range(n_levels)]
         used: list[list[th.Tensor | None]] = [[] for _ in range(n_levels)]  # code in force at each decision
-        states, rewards, conts = [start], [], []
-        for t in range(horizon + 1):
+        rewards: list[th.Tensor] = []
+        conts: list[th.Tensor] = []
+
+        def step(t: int, state: LatentState) -> th.Tensor | None:
+            if t > 0:  # the windows of level-0 states end with s_t
+                newest = wm.features(state).detach().unsqueeze(1)
+                for i in range(1, n_levels):
+                    windows[i] = th.cat([windows[i][:, 1:], newest], 1)
             reward, cont, entropy = wm.reward(state), wm.cont(state), wm.prior_entropy(state)
             rewards.append(reward)
             conts.append(cont)
             for i in reversed(range(1, n_levels)):  # top-down, level i decides every k**i steps
                 if t % k**i:
                     continue
-                upper: Any = levels[i]
+                upper = levels[i]
                 feat = upper.features(windows[i], upper.goal_features(codes[i]), reward, cont, entropy)
                 action = upper.actor_critic.actor(feat.detach()).sample()  # (N, G, K)
                 feats[i].append(feat.detach())
                 acts[i].append(action.detach())
                 used[i].append(codes[i])
                 codes[i - 1] = action.detach().reshape(n, -1)
-            goal_feat = codes[0]
-            if level0.decoded_subgoal_input:
-                with th.no_grad():
-                    goal_feat = level0.autoencoder.decode(codes[0])
+            goal_feat = level0.goal_features(codes[0])
             feat0 = actor_input(state.deter, state.stoch, goal_feat, reward, cont, entropy, use_extras=extras)
             feats[0].append(feat0)
             used[0].append(codes[0])
             if t == horizon:
-                break
+                return None
             action0 = level0.actor_critic.actor(feat0.detach()).sample()
             acts[0].append(action0)
-            state, _ = wm.img_step(state, action0.reshape(n, level0.action_dim))
-            states.append(state)
-            newest = wm.features(state).detach().unsqueeze(1)
-            for i in range(1, n_levels):
-                windows[i] = th.cat([windows[i][:, 1:], newest], 1)
-        traj = LatentState(*(th.stack(fields, 0) for fields in zip(*states, strict=True)))
-        reward_all, cont_all = th.stack(rewards, 0), th.stack(conts, 0)  # (H+1, N)
+            return action0.reshape(n, level0.action_dim)
 
-        # (3) level 0: every imagined step; the subgoal reward of s_t against the subgoal a_{t-1} pursued
-        targets = th.stack([level0.autoencoder.decode(c) for c in [used[0][0], *used[0][:-1]]], 0).detach()
-        rewards0 = {"extrinsic": reward_all, "subgoal": max_cosine_subgoal_reward(traj.deter, targets)}
-        if "novelty" in level0.reward_terms:
+        with contextlib.nullcontext() if dynamics else th.no_grad():
+            traj, _ = wm.rollout(start, horizon, step)
+            reward_all, cont_all = th.stack(rewards, 0), th.stack(conts, 0)  # (H+1, N)
+
+            # (3) level 0: every imagined step; the subgoal reward of s_t against the subgoal a_{t-1} pursued
+            targets = th.stack([level0.autoencoder.decode(c) for c in [used[0][0], *used[0][:-1]]], 0).detach()
+            rewards0 = {"extrinsic": reward_all, "subgoal": max_cosine_subgoal_reward(traj.deter, targets)}
+            if "novelty" in level0.reward_terms:
+                with th.no_grad():
+                    rewards0["novelty"] = novelty_reward(traj.deter, level0.autoencoder)
+        continues0 = th.cat([first_cont.unsqueeze(0), cont_all[1:].detach()], 0)
+        tensors0.update(
+            learn_from_imagination(
+                level0, th.stack(feats[0], 0), th.stack(acts[0], 0), rewards0, continues0, traj.deter
+            )
+        )
+        updates: list[LevelUpdate | None] = [LevelUpdate({**metric_floats(tensors0), "wm/lr": lr}, context)]
+
+        # (4) level i >= 1: every k**i-th imagined state
+        reward_all, cont_all, deter = reward_all.detach(), cont_all.detach(), traj.deter.detach()
+        for i in range(1, n_levels):
+            level = levels[i]
+            stride = k**i
+            steps = horizon // stride
+            ext = th.zeros(steps + 1, n, device=deter.device)
+            cont_i = th.ones(steps + 1, n, device=deter.device)
+            cont_i[0] = first_cont
+            for m in range(1, steps + 1):
+                span = slice((m - 1) * stride + 1, m * stride + 1)
+                ext[m] = reward_all[span].sum(0)
+                cont_i[m] = cont_all[span].prod(0)
+            h_i = deter[::stride][: steps + 1]  # (M+1, N, D)
+            rewards_i = {"extrinsic": ext}
             with th.no_grad():
-                rewards0["novelty"] = novelty_reward(traj.deter, level0.autoencoder)
-    continues0 = th.cat([first_cont.unsqueeze(0), cont_all[1:].detach()], 0)
-    tensors = learn_from_imagination(
-        level0, th.stack(feats[0], 0), th.stack(acts[0], 0), rewards0, continues0, traj.deter
-    )
-    out = [metrics0]
+                if level.subgoal_input:
+                    goals = [used[i][0], *used[i][:steps]]  # s_m against the subgoal of decision m-1
+                    target = th.stack([level.autoencoder.decode(g) for g in goals], 0)
+                    rewards_i["subgoal"] = max_cosine_subgoal_reward(h_i, target)
+                if "novelty" in level.reward_terms:
+                    rewards_i["novelty"] = novelty_reward(h_i, level.autoencoder)
+            feats_i = th.stack(feats[i][: steps + 1], 0)
+            acts_i = th.stack(acts[i][:steps], 0)
+            learned = learn_from_imagination(level, feats_i, acts_i, rewards_i, cont_i, deter)
+            updates.append(LevelUpdate({"n_steps": float(steps), **metric_floats(learned)}, None))
+        return updates
 
-    # (4) level i >= 1: every k**i-th imagined state
-    reward_all, cont_all, deter = reward_all.detach(), cont_all.detach(), traj.deter.detach()
-    for i in range(1, n_levels):
-        level: Any = levels[i]
-        stride = k**i
-        steps = horizon // stride
-        ext = th.zeros(steps + 1, n, device=deter.device)
-        cont_i = th.ones(steps + 1, n, device=deter.device)
-        cont_i[0] = first_cont
-        for m in range(1, steps + 1):
-            span = slice((m - 1) * stride + 1, m * stride + 1)
-            ext[m] = reward_all[span].sum(0)
-            cont_i[m] = cont_all[span].prod(0)
-        h_i = deter[::stride][: steps + 1]  # (M+1, N, D)
-        rewards_i = {"extrinsic": ext}
-        with th.no_grad():
-            if level.subgoal_input:
-                goals = [used[i][0], *used[i][:steps]]  # s_m against the subgoal of decision m-1
-                target = th.stack([level.autoencoder.decode(g) for g in goals], 0)
-                rewards_i["subgoal"] = max_cosine_subgoal_reward(h_i, target)
-            if "novelty" in level.reward_terms:
-                rewards_i["novelty"] = novelty_reward(h_i, level.autoencoder)
-        feats_i = th.stack(feats[i][: steps + 1], 0)
-        acts_i = th.stack(acts[i][:steps], 0)
-        out.append({"n_steps": float(steps)})
-        out[i].update(metric_floats(learn_from_imagination(level, feats_i, acts_i, rewards_i, cont_i, deter)))
-    out[0].update(metric_floats(tensors))
-    return out
+    @th.no_grad()
+    def decode_subgoals(self, state: HierarchyState) -> list[Observation]:
+        """Every level's subgoal decoded into level 0's h space and turned into an observation by level 0's world
+        model (with level 0's current z).
+
+        :param state: the hierarchy state
+        :return: per level i = 1 .. n_levels - 1, (n, *obs_shape) or a dict of such tensors
+        """
+        level0 = self.levels[0]
+        return [
+            level0.decode_state_observation(self.levels[i - 1].decode_subgoal(state.actions[i]), state.latents[0].stoch)
+            for i in range(1, self.n_levels)
+        ]

@@ -1,62 +1,42 @@
 """One level of the HIEROS hierarchy: world model, actor-critic and subgoal autoencoder (thesis 4.3, 4.6, Algorithm 2).
 
-A :class:`Subactor` owns the three learners of one level i (thesis Figure 4.2) and their optimisers:
+A :class:`Subactor` owns the three learners of one level i (thesis Figure 4.2) and their optimisers: the world model
+W^i (:mod:`sb3_hieros.agent.world_model`, thesis 4.4), the actor-critic Pi^i with one critic per active reward term of
+eq. 4.3 (:class:`~sb3_hieros.agent.actor_critic.ActorCritic`) and the subgoal autoencoder G^i on the deterministic
+state h (:class:`~sb3_hieros.agent.subgoal.SubgoalAutoencoder`).
 
-* the world model W^i (:func:`~sb3_hieros.agent.world_model.make_world_model`, thesis 4.4),
-* the actor-critic Pi^i (:class:`~sb3_hieros.agent.actor_critic.ActorCritic`, thesis 4.3.2) with one critic per
-  active reward term of eq. 4.3,
-* the subgoal autoencoder G^i on the deterministic state h (:class:`~sb3_hieros.agent.subgoal.SubgoalAutoencoder`,
-  thesis 4.3.1).
+Actions are float vectors inside a level: one-hot for discrete spaces (``n_cat * n_classes`` grouped one-hot for
+subgoals), values in [-1, 1] for Box. The subgoal a level *receives* lives in the code space of its *own*
+autoencoder, whose decoder maps it into the level's h space for the subgoal reward; the actor and critics see the code
+(thesis) or, with ``decoded_subgoal_input=True``, the decoded vector (ablation 5.3.8). The top level has neither a
+subgoal input nor a subgoal critic.
 
-Spaces. Level 0 acts in the environment (``Discrete`` or a 1-d ``Box``); a level i > 0 acts in the subgoal space of
-level i-1, ``MultiDiscrete([n_classes] * n_cat)``, treated as ``n_cat`` one-hot categoricals. Actions are float
-vectors everywhere inside the level: one-hot (flattened to ``n_cat * n_classes`` for subgoals) for discrete spaces,
-values in [-1, 1] for Box (the policy rescales them to the env bounds). The observation of level i > 0 is the
-concatenation of the last k world states ``[h, z]`` of level i-1 (:meth:`Subactor.higher_level_observation_space`).
-
-Subgoals. The subgoal g a level *receives* lives in the code space of its *own* autoencoder: the level above acts in
-``subgoal_space()`` of this level, and this level's decoder maps g into its own h space for the subgoal reward (thesis
-4.3: "G^i decodes these subgoals g^i"). The actor and critics see the encoded one-hot g (thesis default) or, with
-``decoded_subgoal_input=True``, the decoded h-space vector (ablation 5.3.8). The top level (``subgoal_input=False``)
-has neither a subgoal input nor a subgoal critic.
-
-Training (:meth:`Subactor.train_step`, Algorithm 2 / thesis 4.6.2): world-model step on the sampled chunk; imagination
-of ``imag_horizon`` steps from every posterior state, holding each row's subgoal fixed (thesis 4.6.2, ablation 5.3.9);
-per-state rewards (eq. 4.3-4.5); actor and critic steps; autoencoder step on the sampled and imagined h (eq. 4.2).
-
-Documented choices:
-
-* Imagination runs under ``torch.no_grad`` for REINFORCE (discrete actions and subgoals): the actor loss needs only
-  log-probabilities of stored actions at detached features. For dynamics backpropagation (Box actions) the graph
-  through the world model is kept, only the actor's parameters receive gradients (``backward(inputs=...)``), so the
-  world model and the autoencoder are never changed by the actor loss. As in DreamerV3 the actor sees detached
-  features while imagining; the gradient reaches it through the reparameterised actions.
-* The actor input extras (predicted reward, continue probability, prior entropy, eq. 4.6) are the world-model heads'
-  predictions at every state, the start states included, exactly as at acting time (:meth:`Subactor.act`). The
-  *loss* continue of a start state is ``1 - is_terminal`` of its replay row (DreamerV3), the imagined ones are the
-  continue head's probabilities (detached).
-* The novelty reward is computed without gradient; the subgoal reward (a function of h) keeps the dynamics gradient.
-* Replay stores the received subgoal *code*; it is decoded with the current autoencoder at every training step, so
-  the reward target never goes stale (the reference stores the decoded vector, research note 8.8). The prior entropy
-  fed to the actor is that of the prior at the state both in imagination and when acting (the reference feeds the
-  posterior entropy when acting, note 5.1).
-* Actor, critic and autoencoder use AdamW without weight decay (as the reference and DreamerV3); each critic's
-  gradient norm is clipped on its own (the reference gives each critic its own optimiser).
+:meth:`Subactor.train_step` is Algorithm 2 for this level; :class:`~sb3_hieros.agent.hierarchy.Hierarchy` calls it
+for every level that is due and passes the subgoal updates of ablation 5.3.9. The per-step methods used by the
+hierarchy's acting loop (:meth:`~Subactor.observe_step`, :meth:`~Subactor.act`, ...) trust their inputs; the
+diagnostics (:meth:`~Subactor.state_estimates`, :meth:`~Subactor.decode_subgoal`,
+:meth:`~Subactor.decode_state_observation`) check theirs.
 """
 
 from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable, Mapping
-from typing import Any, Protocol
+from typing import Any, NamedTuple
 
-import numpy as np
 import torch as th
 import torch.nn.functional as F
 from gymnasium import spaces
 from torch import nn
 
-from sb3_hieros.agent.actor_critic import ActorCritic, actor_input, actor_input_dim
+from sb3_hieros.agent.actor_critic import actor_input, actor_input_dim
+from sb3_hieros.agent.learning import (
+    SUBGOAL_SUCCESS_THRESHOLD,
+    imagination_start_indices,
+    learn_from_imagination,
+    level_actor_critic,
+    level_optimizers,
+)
 from sb3_hieros.agent.subgoal import SubgoalAutoencoder, max_cosine_subgoal_reward, novelty_reward
 from sb3_hieros.agent.world_model import (
     LatentState,
@@ -65,242 +45,54 @@ from sb3_hieros.agent.world_model import (
     world_model_lr_scheduler,
     world_model_optimizer,
 )
-from sb3_hieros.buffers import SequenceSamples
-from sb3_hieros.config import HierosConfig, SubgoalConfig
-from sb3_hieros.nn.guard import step_if_finite
+from sb3_hieros.config import HierosConfig
+from sb3_hieros.nn.metrics import metric_floats
+from sb3_hieros.spaces import action_layout, stacked_state_space, subgoal_space
+from sb3_hieros.type_aliases import LevelUpdate, Observation, SequenceSamples
 
-__all__ = [
-    "SUBGOAL_SUCCESS_THRESHOLD",
-    "ImaginationLearner",
-    "Subactor",
-    "action_layout",
-    "imagination_start_indices",
-    "learn_from_imagination",
-    "level_actor_critic",
-    "level_optimizers",
-    "metric_floats",
-    "subgoal_space",
-]
+__all__ = ["Imagination", "Replan", "Subactor", "current_action_alignment"]
 
-#: A subgoal counts as reached when the max-cosine reward (eq. 4.4) of the last imagined state is at least this.
-SUBGOAL_SUCCESS_THRESHOLD = 0.5
+#: ``replan(window, code, carry) -> (code, carry)``: the subgoal from the level above every k imagined steps
+#: (ablation 5.3.9; :meth:`~sb3_hieros.agent.hierarchy.Hierarchy.replan`)
+Replan = Callable[[th.Tensor, th.Tensor, Any], tuple[th.Tensor, Any]]
 
 
-def subgoal_space(config: SubgoalConfig) -> spaces.MultiDiscrete:
-    """Space of the subgoals a level receives: ``n_cat`` categoricals of ``n_classes`` classes (thesis 4.3.1).
+class Imagination(NamedTuple):
+    """One imagined trajectory s_0..s_H of a level (time-major).
 
-    It is the action space of the level above.
-
-    :param config: subgoal autoencoder hyperparameters
-    :return: ``MultiDiscrete([n_classes] * n_cat)``
+    :param states: (H+1, N) states (without the recurrent memory)
+    :param features: (H+1, N, F) actor / critic inputs
+    :param actions: (H, N, *action_shape) actions of the actor
+    :param rewards: (H+1, N) rewards predicted by the world model
+    :param continues: (H+1, N) continue probabilities predicted by the world model
+    :param targets: decoded subgoals the subgoal reward compares with: (N, D) held, (H+1, N, D) with subgoal updates,
+        None at the top level
     """
-    return spaces.MultiDiscrete([config.n_classes] * config.n_cat)
+
+    states: LatentState
+    features: th.Tensor
+    actions: th.Tensor
+    rewards: th.Tensor
+    continues: th.Tensor
+    targets: th.Tensor | None
 
 
-def action_layout(action_space: spaces.Space) -> tuple[str, int, int]:
-    """How a level's action space maps onto the actor's output.
+def current_action_alignment(action_vectors: th.Tensor, is_first: th.Tensor) -> th.Tensor:
+    """Row t carries a_t (the action chosen at o_t) instead of a_{t-1}: the reference code's world-model training
+    alignment (reference-compat switch ``reference.action_alignment="current"``).
 
-    :param action_space: ``Discrete(n)`` -> one categorical of n classes; ``MultiDiscrete([K] * G)`` (all entries
-        equal, e.g. a subgoal space) -> G categoricals of K classes; 1-d ``Box`` -> a bounded normal per dim
-    :return: (kind ``"discrete"`` or ``"box"``, classes per group (discrete) or dims (box), number of groups)
+    Row t gets row t+1's action; it is zero where row t is an episode start (as in the reference), where row t+1 is
+    one (the action after a final observation) and in the chunk's last row (its a_t is not in the chunk).
+
+    :param action_vectors: (B, T, A) the batch's actions a_{t-1} as float vectors (:meth:`Subactor.action_vectors`)
+    :param is_first: (B, T) episode starts
+    :return: (B, T, A) float actions a_t
     """
-    if isinstance(action_space, spaces.Discrete):
-        if int(action_space.start) != 0:
-            raise ValueError(f"action_space must be a Discrete space starting at 0, got {action_space}")
-        if int(action_space.n) < 2:
-            raise ValueError(f"action_space must have at least 2 actions, got {action_space}")
-        return "discrete", int(action_space.n), 1
-    if isinstance(action_space, spaces.MultiDiscrete):
-        nvec = np.asarray(action_space.nvec)
-        if nvec.ndim != 1 or nvec.size < 1 or not np.all(nvec == nvec[0]) or int(nvec[0]) < 2:
-            raise ValueError(
-                f"action_space must be a 1-d MultiDiscrete with equal entries >= 2 (e.g. the subgoal space "
-                f"MultiDiscrete([8] * 8)), got nvec={nvec.tolist()}"
-            )
-        if np.any(np.asarray(action_space.start) != 0):
-            raise ValueError(f"action_space must be a MultiDiscrete space starting at 0, got {action_space}")
-        return "discrete", int(nvec[0]), int(nvec.size)
-    if isinstance(action_space, spaces.Box):
-        if len(action_space.shape) != 1:
-            raise ValueError(f"a Box action_space must be 1-d, got shape {action_space.shape}")
-        if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
-            raise ValueError(f"a Box action_space must have finite bounds, got {action_space}")
-        return "box", int(action_space.shape[0]), 1
-    raise ValueError(
-        f"action_space must be Discrete, MultiDiscrete (subgoals) or a 1-d Box, got {type(action_space).__name__}"
-    )
-
-
-def level_actor_critic(
-    feat_dim: int, kind: str, classes: int, groups: int, gradient: str, config: HierosConfig, subgoal_input: bool
-) -> ActorCritic:
-    """The actor-critic of one level with the reward weights of eq. 4.3 (and the switch of ablation 5.3.10).
-
-    :param feat_dim: actor / critic input size
-    :param kind: ``"discrete"`` or ``"box"``
-    :param classes: classes per categorical (discrete) or action dims (box)
-    :param groups: number of categoricals
-    :param gradient: ``"reinforce"`` or ``"dynamics"``
-    :param config: hyperparameters (``actor_critic``, ``extrinsic_reward_levels``, ``reference``)
-    :param subgoal_input: False for the top level (no subgoal critic)
-    :return: the actor-critic
-    """
-    ac = config.actor_critic
-    extrinsic_here = config.extrinsic_reward_levels == "all" or not subgoal_input  # ablation 5.3.10
-    weights = {
-        "extrinsic": ac.extrinsic_weight if extrinsic_here else 0.0,
-        "subgoal": ac.subgoal_weight if subgoal_input else 0.0,
-        "novelty": ac.novelty_weight,
-    }
-    return ActorCritic(
-        feat_dim,
-        kind,
-        classes,
-        groups,
-        hidden=ac.units,
-        layers=ac.layers,
-        reward_weights=weights,
-        discount=ac.discount,
-        lambda_=ac.lambda_,
-        entropy_coef=ac.entropy,
-        gradient=gradient,
-        unimix=ac.unimix,
-        slow_fraction=ac.slow_critic_fraction,
-        reinforce_advantage=config.reference.reinforce_advantage,
-    )
-
-
-def level_optimizers(
-    actor_critic: ActorCritic, autoencoder: SubgoalAutoencoder, config: HierosConfig
-) -> tuple[th.optim.Optimizer, th.optim.Optimizer, th.optim.Optimizer]:
-    """AdamW optimisers (no weight decay) of the actor, the critics and the subgoal autoencoder of one level.
-
-    :param actor_critic: the level's actor-critic
-    :param autoencoder: the level's subgoal autoencoder
-    :param config: hyperparameters (``actor_critic`` and ``subgoal`` sections)
-    :return: (actor, critic, autoencoder) optimisers
-    """
-    ac, sg = config.actor_critic, config.subgoal
-    return (
-        th.optim.AdamW(actor_critic.actor_parameters(), lr=ac.actor_lr, eps=ac.eps, weight_decay=0.0),
-        th.optim.AdamW(actor_critic.critic_parameters(), lr=ac.critic_lr, eps=ac.eps, weight_decay=0.0),
-        th.optim.AdamW(autoencoder.parameters(), lr=sg.lr, eps=sg.eps, weight_decay=0.0),
-    )
-
-
-def imagination_start_indices(n_states: int, fraction: float, device: th.device) -> th.Tensor | None:
-    """Which of the B*T posterior states of a batch start an imagination rollout (Algorithm 2 line 6).
-
-    The thesis and DreamerV3 start from all of them (``fraction=1``); otherwise ``max(1, round(fraction * N))`` are
-    drawn uniformly without replacement (torch's global generator, so seeded runs stay reproducible).
-
-    :param n_states: posterior states of the batch, N = B*T
-    :param fraction: share of the states to start from, in (0, 1]
-    :param device: device of the indices
-    :return: (n,) indices into the N states, or None for all of them
-    """
-    if not 0.0 < fraction <= 1.0:
-        raise ValueError(f"fraction must be in (0, 1], got {fraction!r}")
-    count = max(1, round(fraction * n_states))
-    if count >= n_states:
-        return None
-    return th.randperm(n_states, device=device)[:count]
-
-
-class ImaginationLearner(Protocol):
-    """What :func:`learn_from_imagination` needs of a level (a :class:`Subactor` or a shared-world-model level)."""
-
-    config: HierosConfig
-    actor_critic: ActorCritic
-    autoencoder: SubgoalAutoencoder
-    actor_optimizer: th.optim.Optimizer
-    critic_optimizer: th.optim.Optimizer
-    ae_optimizer: th.optim.Optimizer
-
-
-def learn_from_imagination(
-    level: ImaginationLearner,
-    feats: th.Tensor,
-    actions: th.Tensor,
-    rewards: dict[str, th.Tensor],
-    continues: th.Tensor,
-    h_all: th.Tensor,
-) -> dict[str, th.Tensor]:
-    """Actor, critic and subgoal-autoencoder steps of one level on its imagined trajectory (Algorithm 2 lines 8-10).
-
-    Actor (eq. 4.6-4.9) and critics (eq. 4.3 terms) each take one guarded step (:func:`step_if_finite`): a skipped
-    actor or critic step also undoes the return normalisers' update, and the slow critics follow only a taken critic
-    step. The autoencoder (eq. 4.2) trains on ``h_all`` detached. Every gradient stays in its own module.
-
-    :param level: the level whose modules and optimisers train
-    :param feats: (M+1, N, F) actor inputs of s_0..s_M
-    :param actions: (M, N, *action_shape) imagined actions
-    :param rewards: term -> (M+1, N) rewards of s_0..s_M (index 0 unused by the returns)
-    :param continues: (M+1, N) continue flags
-    :param h_all: (..., D) deterministic states the autoencoder trains on
-    :return: 0-d metric tensors: ``actor/*``, ``critic/*`` (per term ``<term>_loss``, ``<term>_value``,
-        ``<term>_grad_norm``), ``return/<term>``, ``return/<term>_scale``, ``reward/<term>``, ``ae/*`` and
-        ``nonfinite/{actor,critic,autoencoder}`` (1.0 where that step was skipped)
-    """
-    clip = level.config.actor_critic.grad_clip
-    ac = level.actor_critic
-    out: dict[str, th.Tensor] = {}
-    retnorm_state = {k: v.clone() for k, v in ac.normalizers.state_dict().items()}
-    actor_loss, critic_loss, ac_metrics = ac.loss(feats, actions, rewards, continues)
-    actor_params = list(ac.actor_parameters())
-    level.actor_optimizer.zero_grad(set_to_none=True)
-    actor_loss.backward(inputs=actor_params)  # never accumulates into world model / autoencoder / critics
-    out["actor/grad_norm"] = nn.utils.clip_grad_norm_(actor_params, clip)
-    actor_ok = step_if_finite(level.actor_optimizer, actor_loss, out["actor/grad_norm"])
-    level.critic_optimizer.zero_grad(set_to_none=True)
-    critic_loss.backward(inputs=list(ac.critic_parameters()))
-    for name, critic in ac.critics.items():
-        out[f"critic/{name}_grad_norm"] = nn.utils.clip_grad_norm_(critic.net.parameters(), clip)
-    critic_ok = step_if_finite(level.critic_optimizer, critic_loss, *(out[f"critic/{n}_grad_norm"] for n in ac.critics))
-    if not (actor_ok and critic_ok):  # keep the return statistics finite too
-        ac.normalizers.load_state_dict(retnorm_state)
-    if critic_ok:
-        ac.update_slow_critics()
-
-    ae_params = list(level.autoencoder.parameters())
-    ae_loss, ae_metrics = level.autoencoder.loss(h_all.detach().reshape(-1, h_all.shape[-1]))
-    level.ae_optimizer.zero_grad(set_to_none=True)
-    ae_loss.backward(inputs=ae_params)
-    out["ae/grad_norm"] = nn.utils.clip_grad_norm_(ae_params, level.config.subgoal.grad_clip)
-    ae_ok = step_if_finite(level.ae_optimizer, ae_loss, out["ae/grad_norm"])
-
-    one = feats.new_ones(())
-    out["nonfinite/actor"] = one * (not actor_ok)
-    out["nonfinite/critic"] = one * (not critic_ok)
-    out["nonfinite/autoencoder"] = one * (not ae_ok)
-    out["actor/loss"] = ac_metrics["actor_loss"]
-    out["actor/entropy"] = ac_metrics["actor_entropy"]
-    out["actor/advantage_mean"] = ac_metrics["advantage_mean"]
-    out["actor/advantage_std"] = ac_metrics["advantage_std"]
-    out["critic/loss"] = ac_metrics["critic_loss"]
-    for name in ac.critics:
-        out[f"critic/{name}_loss"] = ac_metrics[f"{name}/critic_loss"]
-        out[f"critic/{name}_value"] = ac_metrics[f"{name}/value_mean"]
-        out[f"return/{name}"] = ac_metrics[f"{name}/return_mean"]
-        out[f"return/{name}_scale"] = ac_metrics[f"{name}/return_scale"]
-    for name, r in rewards.items():
-        out[f"reward/{name}"] = r[1:].detach().mean()
-    for key, value in ae_metrics.items():
-        out["ae/" + key.split("/", 1)[1]] = value
-    return out
-
-
-def metric_floats(tensors: Mapping[str, th.Tensor]) -> dict[str, float]:
-    """0-d metric tensors as Python floats, with one device-to-host copy for all of them.
-
-    :param tensors: name -> 0-d tensor
-    :return: name -> float
-    """
-    names = list(tensors)
-    if not names:
-        return {}
-    values = th.stack([tensors[k].detach().float().reshape(()) for k in names]).cpu().tolist()
-    return dict(zip(names, values, strict=True))
+    is_first = is_first.bool()
+    shifted = th.cat([action_vectors[:, 1:], th.zeros_like(action_vectors[:, :1])], 1)
+    next_first = th.cat([is_first[:, 1:], th.zeros_like(is_first[:, :1])], 1)
+    keep = ~(is_first | next_first)
+    return shifted * keep.unsqueeze(-1).to(shifted.dtype)
 
 
 def _count(params: Any) -> int:
@@ -334,14 +126,6 @@ class Subactor(nn.Module):
         compile: bool = False,
     ) -> None:
         super().__init__()
-        if not isinstance(config, HierosConfig):
-            raise ValueError(f"config must be a HierosConfig, got {type(config).__name__}")
-        if isinstance(level, bool) or not isinstance(level, int) or level < 0:
-            raise ValueError(f"level must be an int >= 0, got {level!r}")
-        if not isinstance(observation_space, spaces.Space):
-            raise ValueError(f"observation_space must be a gymnasium Space, got {type(observation_space).__name__}")
-        if not isinstance(action_space, spaces.Space):
-            raise ValueError(f"action_space must be a gymnasium Space, got {type(action_space).__name__}")
         kind, classes, groups = action_layout(action_space)
         self.config = config
         self.level = level
@@ -375,12 +159,6 @@ class Subactor(nn.Module):
         self.actor_critic = level_actor_critic(
             self.feat_dim, kind, classes, groups, self.imag_gradient, config, self.subgoal_input
         )
-        #: ablation 5.3.9: ``fn(window, subgoal, carry) -> (new_subgoal, carry)`` called every ``subgoal_interval``
-        #: imagined steps (see :meth:`_imagine_updating_subgoals`); None holds the replay subgoal fixed (thesis default)
-        self.imagination_subgoal_fn: Callable[[th.Tensor, th.Tensor, Any], tuple[th.Tensor, Any]] | None = None
-        #: packed posterior states (B, T, C) of the last :meth:`train_step` on a batch with replay context, else None
-        self.last_context: th.Tensor | None = None
-
         self.wm_optimizer = world_model_optimizer(self.world_model)
         self.wm_scheduler: th.optim.lr_scheduler.LRScheduler | None = world_model_lr_scheduler(
             self.wm_optimizer, config.world_model.warmup
@@ -414,44 +192,7 @@ class Subactor(nn.Module):
         :param k: number of stacked states (``config.subgoal_interval``; 1 for ablation 5.3.6)
         :return: ``Box(-inf, inf, (k * (D + G*K),), float32)``
         """
-        if isinstance(k, bool) or not isinstance(k, int | np.integer) or k < 1:
-            raise ValueError(f"k must be a positive int, got {k!r}")
-        return spaces.Box(-np.inf, np.inf, (int(k) * self.latent_dim,), np.float32)
-
-    # ------------------------------------------------------------------------------------------------ checks
-
-    def _check_state(self, state: Any, name: str = "state") -> int:
-        if not isinstance(state, LatentState):
-            raise ValueError(f"{name} must be a LatentState, got {type(state).__name__}")
-        if len(state.batch_shape) != 1:
-            raise ValueError(f"{name} must have batch shape (B,), got {tuple(state.batch_shape)}")
-        if state.deter.shape[-1] != self.h_dim or state.stoch.shape[-1] != self.z_dim:
-            raise ValueError(
-                f"{name} has deter/stoch sizes {state.deter.shape[-1]}/{state.stoch.shape[-1]}, expected "
-                f"{self.h_dim}/{self.z_dim}"
-            )
-        return int(state.batch_shape[0])
-
-    def _flat_subgoal(self, subgoal: Any, lead: tuple[int, ...], name: str) -> th.Tensor:
-        """A subgoal tensor of shape (*lead, S) or (*lead, n_cat, n_classes) as float (*lead, S)."""
-        sg = self.config.subgoal
-        accepted = ((*lead, self.subgoal_dim), (*lead, sg.n_cat, sg.n_classes))
-        if not isinstance(subgoal, th.Tensor):
-            raise ValueError(f"{name} must be a torch.Tensor of shape {accepted[0]}, got {type(subgoal).__name__}")
-        if tuple(subgoal.shape) not in accepted:
-            raise ValueError(f"{name} has shape {tuple(subgoal.shape)}, expected {accepted[0]} or {accepted[1]}")
-        if not subgoal.is_floating_point():
-            raise ValueError(f"{name} must be a float (one-hot) tensor, got dtype {subgoal.dtype}")
-        return subgoal.reshape(*lead, self.subgoal_dim).float()
-
-    def _check_subgoal_arg(self, subgoal: Any, lead: tuple[int, ...], name: str) -> th.Tensor | None:
-        if not self.subgoal_input:
-            if subgoal is not None:
-                raise ValueError(f"{name} must be None: this is the top level (subgoal_input=False)")
-            return None
-        if subgoal is None:
-            raise ValueError(f"{name} is required: this level takes a subgoal of shape {(*lead, self.subgoal_dim)}")
-        return self._flat_subgoal(subgoal, lead, name)
+        return stacked_state_space(self.latent_dim, k)
 
     def action_vectors(self, actions: th.Tensor, is_first: th.Tensor) -> th.Tensor:
         """Replay actions as the float vectors the world model consumes (previous actions, zero where ``is_first``).
@@ -464,30 +205,12 @@ class Subactor(nn.Module):
         :param is_first: (B, T) episode starts
         :return: (B, T, A) float
         """
-        if not isinstance(actions, th.Tensor):
-            raise ValueError(f"samples.actions must be a torch.Tensor, got {type(actions).__name__}")
         lead = tuple(is_first.shape)
-        if tuple(actions.shape) == (*lead, self.action_dim) and actions.is_floating_point():
+        if actions.is_floating_point() and tuple(actions.shape) == (*lead, self.action_dim):
             return actions
-        if self.action_kind == "discrete":
-            index_shapes = [(*lead, self.action_groups)] + ([lead] if self.action_groups == 1 else [])
-            if tuple(actions.shape) in index_shapes:
-                index = actions.reshape(*lead, self.action_groups)
-                if index.is_floating_point():
-                    if not th.equal(index, index.round()):
-                        raise ValueError("samples.actions holds non-integer values where action indices are expected")
-                index = index.long()
-                if index.min() < 0 or index.max() >= self.action_classes:
-                    raise ValueError(
-                        f"samples.actions indices must lie in [0, {self.action_classes}), got range "
-                        f"[{int(index.min())}, {int(index.max())}]"
-                    )
-                one_hot = F.one_hot(index, self.action_classes).float().reshape(*lead, self.action_dim)
-                return one_hot * (~is_first.bool()).unsqueeze(-1).float()
-        raise ValueError(
-            f"samples.actions has shape {tuple(actions.shape)} and dtype {actions.dtype}; expected float "
-            f"{(*lead, self.action_dim)}" + (" or integer indices" if self.action_kind == "discrete" else "")
-        )
+        index = actions.reshape(*lead, self.action_groups).long()
+        one_hot = F.one_hot(index, self.action_classes).float().reshape(*lead, self.action_dim)
+        return one_hot * (~is_first.bool()).unsqueeze(-1).float()
 
     # ------------------------------------------------------------------------------------------------ acting
 
@@ -503,34 +226,41 @@ class Subactor(nn.Module):
     def observe_step(
         self,
         state: LatentState | None,
-        observation: th.Tensor | Mapping[str, th.Tensor],
+        observation: Observation,
         prev_action: th.Tensor,
         is_first: th.Tensor,
         deterministic: bool = False,
     ) -> LatentState:
         """Encode one observation into the world state (Algorithm 1 ``Encode``; no gradients).
 
-        :param state: previous state (batch (B,)), or None at the very start
+        :param state: previous state (batch (B,)), or None for :meth:`initial_state`
         :param observation: (B, *obs_shape) (dict for Dict spaces)
         :param prev_action: (B, A) float action vector taken after the previous observation (from :meth:`act`)
         :param is_first: (B,) bool, new episodes (state and ``prev_action`` ignored there)
         :param deterministic: take the posterior mode instead of a sample
         :return: posterior state (batch (B,))
         """
-        return self.world_model.obs_step(state, observation, prev_action, is_first, deterministic)
+        wm = self.world_model
+        if state is None:
+            state = wm.initial_state(int(prev_action.shape[0]))
+        return wm._obs_step(state, wm.spec.as_dict(observation), prev_action, is_first, deterministic)
 
-    def _goal_features(self, subgoal: th.Tensor | None) -> th.Tensor | None:
-        """What the actor sees of the subgoal: the one-hot code (thesis) or its decoding (ablation 5.3.8)."""
+    def goal_features(self, subgoal: th.Tensor | None) -> th.Tensor | None:
+        """What the actor sees of the subgoal: the one-hot code (thesis) or its decoding (ablation 5.3.8).
+
+        :param subgoal: (B, n_cat * n_classes) one-hot code, or None at the top level
+        :return: (B, S') or None
+        """
         if subgoal is None or not self.decoded_subgoal_input:
             return subgoal
         with th.no_grad():
             return self.autoencoder.decode(subgoal)
 
-    def _features(self, state: LatentState, goal_feat: th.Tensor | None) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+    def features(self, state: LatentState, goal_feat: th.Tensor | None) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         """Actor / critic input s_t of eq. 4.6 and the world model's reward and continue predictions at ``state``.
 
         :param state: states of any batch shape *B
-        :param goal_feat: (*B, S') subgoal features or None
+        :param goal_feat: (*B, S') :meth:`goal_features` or None
         :return: features (*B, feat_dim), predicted reward (*B), continue probability (*B)
         """
         wm = self.world_model
@@ -546,27 +276,48 @@ class Subactor(nn.Module):
         )
         return feat, reward, cont
 
-    def _checked_features(
-        self, state: LatentState, subgoal: th.Tensor | None
-    ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
-        """:meth:`_features` of a user-given ``state`` (batch (B,)) and ``subgoal``, both checked first."""
-        batch = self._check_state(state)
-        goal = self._check_subgoal_arg(subgoal, (batch,), "subgoal")
-        return self._features(state, self._goal_features(goal))
-
     @th.no_grad()
     def act(self, state: LatentState, subgoal: th.Tensor | None, deterministic: bool = False) -> th.Tensor:
         """Action of this level in ``state`` (eq. 4.6; no gradients).
 
         :param state: current world state (batch (B,))
-        :param subgoal: (B, n_cat * n_classes) or (B, n_cat, n_classes) one-hot subgoal from the level above; None at
-            the top level
+        :param subgoal: (B, n_cat * n_classes) one-hot subgoal from the level above; None at the top level
         :param deterministic: the distribution's mode (thesis 4.3.2 for environment interaction) instead of a sample
         :return: (B, A): one-hot for Discrete, ``n_cat * n_classes`` grouped one-hot for subgoals, [-1, 1] for Box
         """
-        feat, _, _ = self._checked_features(state, subgoal)
-        action = self.actor_critic.act(feat, deterministic)
-        return action.reshape(feat.shape[0], self.action_dim)
+        feat, _, _ = self.features(state, self.goal_features(subgoal))
+        return self.actor_critic.act(feat, deterministic).reshape(feat.shape[0], self.action_dim)
+
+    @th.no_grad()
+    def encoded_observation(self, state: LatentState) -> th.Tensor:
+        """One world state as the level above sees it (thesis 4.3), to be concatenated over k steps.
+
+        :param state: world state (batch (B,))
+        :return: (B, D + G*K) = ``[h, z]`` (h is already symlog-scaled inside the world model)
+        """
+        return self.world_model.features(state)
+
+    # ------------------------------------------------------------------------------------------------ diagnostics
+
+    def _check_state(self, state: Any) -> int:
+        if not isinstance(state, LatentState) or len(state.batch_shape) != 1:
+            got = tuple(state.batch_shape) if isinstance(state, LatentState) else type(state).__name__
+            raise ValueError(f"state must be a LatentState of batch shape (B,), got {got}")
+        if state.deter.shape[-1] != self.h_dim or state.stoch.shape[-1] != self.z_dim:
+            raise ValueError(
+                f"state has deter/stoch sizes {state.deter.shape[-1]}/{state.stoch.shape[-1]}, expected "
+                f"{self.h_dim}/{self.z_dim}"
+            )
+        return int(state.batch_shape[0])
+
+    def _flat_subgoal(self, subgoal: Any, batch: int, name: str = "subgoal") -> th.Tensor:
+        """A subgoal tensor of shape (B, S) or (B, n_cat, n_classes) as float (B, S)."""
+        sg = self.config.subgoal
+        accepted = ((batch, self.subgoal_dim), (batch, sg.n_cat, sg.n_classes))
+        if not isinstance(subgoal, th.Tensor) or tuple(subgoal.shape) not in accepted:
+            got = tuple(subgoal.shape) if isinstance(subgoal, th.Tensor) else type(subgoal).__name__
+            raise ValueError(f"{name} must be a tensor of shape {accepted[0]} or {accepted[1]}, got {got}")
+        return subgoal.reshape(batch, self.subgoal_dim).float()
 
     @th.no_grad()
     def state_estimates(self, state: LatentState, subgoal: th.Tensor | None) -> dict[str, th.Tensor]:
@@ -577,21 +328,18 @@ class Subactor(nn.Module):
         :param subgoal: (B, n_cat * n_classes) or (B, n_cat, n_classes) one-hot subgoal in force; None at the top
         :return: ``"reward"``, ``"continue"`` and ``"value/<term>"`` for every term of :attr:`reward_terms`, each (B,)
         """
-        feat, reward, cont = self._checked_features(state, subgoal)
+        batch = self._check_state(state)
+        if (subgoal is None) == self.subgoal_input:
+            raise ValueError(
+                f"subgoal must be {'given' if self.subgoal_input else 'None'} at level {self.level} "
+                f"(subgoal_input={self.subgoal_input})"
+            )
+        goal = None if subgoal is None else self._flat_subgoal(subgoal, batch)
+        feat, reward, cont = self.features(state, self.goal_features(goal))
         out = {"reward": reward, "continue": cont}
         for name in self.reward_terms:
             out[f"value/{name}"] = self.actor_critic.critics[name].value(feat)
         return out
-
-    @th.no_grad()
-    def encoded_observation(self, state: LatentState) -> th.Tensor:
-        """One world state as the level above sees it (thesis 4.3), to be concatenated over k steps.
-
-        :param state: world state (batch (B,))
-        :return: (B, D + G*K) = ``[h, z]`` (h is already symlog-scaled inside the world model)
-        """
-        self._check_state(state)
-        return self.world_model.features(state)
 
     @th.no_grad()
     def decode_subgoal(self, subgoal: th.Tensor) -> th.Tensor:
@@ -600,15 +348,13 @@ class Subactor(nn.Module):
         :param subgoal: (B, n_cat * n_classes) or (B, n_cat, n_classes)
         :return: (B, D)
         """
-        if not isinstance(subgoal, th.Tensor) or subgoal.dim() < 2:
-            shape = tuple(subgoal.shape) if isinstance(subgoal, th.Tensor) else type(subgoal).__name__
-            raise ValueError(f"subgoal must be a tensor of shape (B, {self.subgoal_dim}), got {shape}")
-        return self.autoencoder.decode(self._flat_subgoal(subgoal, (int(subgoal.shape[0]),), "subgoal"))
+        batch = int(subgoal.shape[0]) if isinstance(subgoal, th.Tensor) and subgoal.dim() >= 2 else -1
+        return self.autoencoder.decode(self._flat_subgoal(subgoal, batch))
 
     @th.no_grad()
-    def decode_state_observation(self, h: th.Tensor, stoch: th.Tensor) -> th.Tensor | dict[str, th.Tensor]:
-        """Observation the world-model decoder predicts from ``(h, z)`` (subgoal visualisation: a decoded subgoal h
-        with the current z, reference 6.4).
+    def decode_state_observation(self, h: th.Tensor, stoch: th.Tensor) -> Observation:
+        """Observation the world-model decoder predicts from ``(h, z)`` (to show a subgoal: a decoded subgoal h with
+        the current z).
 
         :param h: (B, D) deterministic state, e.g. :meth:`decode_subgoal`
         :param stoch: (B, G*K) stochastic state
@@ -626,219 +372,171 @@ class Subactor(nn.Module):
 
     # ------------------------------------------------------------------------------------------------ training
 
-    def _check_samples(self, samples: Any) -> tuple[SequenceSamples, th.Tensor | None]:
-        for field in ("observations", "actions", "rewards", "is_first", "is_terminal"):
-            if not hasattr(samples, field):
-                raise ValueError(f"samples must have the attribute {field!r} (SequenceSamples-like)")
+    def training_batch(self, samples: SequenceSamples) -> tuple[SequenceSamples, th.Tensor | None]:
+        """A replay batch as this level trains on it: previous actions as float vectors (the current ones with
+        ``reference.action_alignment="current"``, :func:`current_action_alignment`), subgoals flattened.
+
+        :param samples: a batch of chunks (B, T, ...) of this level's replay
+        :return: the batch and its (B, T, n_cat * n_classes) subgoals (None at the top level or without subgoals)
+        """
         is_first = samples.is_first
-        if not isinstance(is_first, th.Tensor) or is_first.dim() != 2:
-            shape = tuple(is_first.shape) if isinstance(is_first, th.Tensor) else type(is_first).__name__
-            raise ValueError(f"samples.is_first must be a (B, T) tensor, got {shape}")
-        lead = tuple(is_first.shape)
-        is_terminal = samples.is_terminal
-        if not isinstance(is_terminal, th.Tensor) or tuple(is_terminal.shape) != lead:
-            shape = tuple(is_terminal.shape) if isinstance(is_terminal, th.Tensor) else type(is_terminal).__name__
-            raise ValueError(f"samples.is_terminal must have shape {lead}, got {shape}")
-        subgoals = self._check_subgoal_arg(getattr(samples, "subgoals", None), lead, "samples.subgoals")
-        checked = SequenceSamples(
-            samples.observations,
-            self.action_vectors(samples.actions, is_first),
-            samples.rewards,
-            is_first,
-            is_terminal,
-            subgoals,
-        )
-        return checked, subgoals
+        actions = self.action_vectors(samples.actions, is_first)
+        if self.config.reference.action_alignment == "current":
+            actions = current_action_alignment(actions, is_first)
+        subgoals = None
+        if self.subgoal_input and samples.subgoals is not None:
+            subgoals = samples.subgoals.reshape(*is_first.shape, self.subgoal_dim).float()
+        batch = SequenceSamples(samples.observations, actions, samples.rewards, is_first, samples.is_terminal, subgoals)
+        return batch, subgoals
 
-    def _imagine(
-        self,
-        start: LatentState,
-        goal_feat: th.Tensor | None,
-        replan: Callable[[list[LatentState]], th.Tensor] | None = None,
-    ) -> tuple[LatentState, th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
-        """Roll out ``imag_horizon`` steps with the current actor (thesis 4.4.3, Algorithm 2 line 7).
+    def world_model_step(
+        self, batch: SequenceSamples, context: th.Tensor | None
+    ) -> tuple[dict[str, th.Tensor], LatentState, th.Tensor | None]:
+        """Step 1 of :meth:`train_step` (also used by the shared-world-model hierarchy): one world-model update on
+        ``batch``, started from the replay context (the world state stored for the row before each chunk).
 
-        The world-model heads are evaluated once per state and reused for the actor input and the rewards. The
-        actor acts on detached features (DreamerV3); with dynamics backpropagation the reparameterised actions carry
-        the gradient into the rollout.
+        :param batch: the batch from :meth:`training_batch`
+        :param context: (B, C) packed states of the replay context, or None to start every chunk from zeros
+        :return: metrics ``wm/*`` and ``nonfinite/world_model`` (0-d tensors), the detached posterior states and,
+            with a context, the packed posterior states (B, T, C) to store back into the replay
+        """
+        wm = self.world_model
+        start = None if context is None else wm.unpack_context(context)
+        wm_metrics, post = wm._train_step(batch, self.wm_optimizer, self.wm_scheduler, start)
+        metrics = {f"wm/{k}": v for k, v in wm_metrics.items()}
+        metrics["nonfinite/world_model"] = metrics.pop("wm/nonfinite")
+        return metrics, post, None if context is None else wm.pack_context(post)
+
+    def imagine(self, start: LatentState, codes: th.Tensor | None, replan: Replan | None = None) -> Imagination:
+        """Imagination of ``imag_horizon`` steps with the current actor from ``start`` (thesis 4.4.3, Algorithm 2
+        line 7), through :meth:`WorldModel.rollout`.
+
+        The world-model heads are evaluated once per state and serve the actor input and the rewards. The actor acts
+        on detached features (DreamerV3); with dynamics backpropagation the reparameterised actions carry the
+        gradient into the rollout. The subgoal ``codes`` are held over the horizon (thesis), or, with ``replan``
+        (ablation 5.3.9), at every imagined step t > 0 with ``t % subgoal_interval == 0`` the level above gets the
+        world states of the last k imagined states (N, k, D + G*K), the code in force and its carry (None at the
+        first call of a rollout) and returns the new code; the actor sees it from s_t on, and the subgoal reward of
+        s_{t+1} is measured against the subgoal in force when a_t was chosen.
 
         :param start: (N,) detached posterior states
-        :param goal_feat: (N, S') subgoal features in force at s_0, or None
-        :param replan: None holds ``goal_feat`` over the horizon (thesis default); otherwise it is called at every
-            imagined step t > 0 with ``t % subgoal_interval == 0`` with the states s_0..s_t so far and returns the
-            subgoal features in force from s_t on (ablation 5.3.9)
-        :return: states (H+1, N), features (H+1, N, F), actions (H, N, *action_shape), predicted rewards (H+1, N),
-            continue probabilities (H+1, N)
+        :param codes: (N, n_cat * n_classes) subgoal codes in force at s_0, or None at the top level
+        :param replan: the subgoal updates of the level above, or None to hold ``codes``
+        :return: the imagined trajectory
         """
         wm, actor = self.world_model, self.actor_critic.actor
         horizon, k = self.config.imag_horizon, self.config.subgoal_interval
-        state = start
-        states, feats, actions, rewards, conts = [start], [], [], [], []
-        with wm.reuse_step_weights():  # one discretisation for the whole rollout (S5WM)
-            for t in range(horizon + 1):
-                if replan is not None and t > 0 and t % k == 0:
-                    goal_feat = replan(states)
-                feat, reward, cont = self._features(state, goal_feat)
-                feats.append(feat)
-                rewards.append(reward)
-                conts.append(cont)
-                if t == horizon:
-                    break
-                action = actor(feat.detach()).sample()  # (N, *action_shape)
-                actions.append(action)
-                state, _ = wm.img_step(state, action.reshape(action.shape[0], self.action_dim))
-                states.append(state)
-        trajectory = LatentState(*(th.stack(fields, 0) for fields in zip(*states, strict=True)))
-        return trajectory, th.stack(feats, 0), th.stack(actions, 0), th.stack(rewards, 0), th.stack(conts, 0)
-
-    def _imagine_updating_subgoals(
-        self, start: LatentState, codes: th.Tensor
-    ) -> tuple[LatentState, th.Tensor, th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
-        """:meth:`_imagine` with the subgoal re-planned every k imagined steps (ablation 5.3.9).
-
-        At every imagined step t > 0 with ``t % subgoal_interval == 0`` the level above is invoked through
-        :attr:`imagination_subgoal_fn` with the world states ``[h, z]`` of the last k imagined states s_{t-k+1..t}
-        (N, k, D + G*K), the subgoal code in force and its carry (None at the first call of a rollout); it returns the
-        new subgoal code and the carry for its next call. The actor sees the new subgoal from s_t on. The subgoal
-        reward of s_t is measured against the subgoal that was in force when a_{t-1} was chosen.
-
-        :param start: (N,) detached posterior states
-        :param codes: (N, n_cat * n_classes) subgoal codes of the replay rows (in force at s_0)
-        :return: as :meth:`_imagine`, plus (H+1, N, D) decoded subgoal targets of the subgoal reward per state
-        """
-        fn = self.imagination_subgoal_fn
-        if fn is None:
-            raise ValueError(
-                "imagination_subgoal_fn is not set: the policy installs it (update_subgoals_in_imagination)"
-            )
-        wm = self.world_model
-        horizon, k = self.config.imag_horizon, self.config.subgoal_interval
-        with th.no_grad():
-            target = self.autoencoder.decode(codes)  # (N, D)
+        target = goal_feat = None
+        if codes is not None:
+            with th.no_grad():
+                target = self.autoencoder.decode(codes)  # (N, D): the subgoal in this level's h space
+            goal_feat = target if self.decoded_subgoal_input else codes
+        replanning = replan is not None and codes is not None
         planned = [target]  # planned[j]: decoded subgoal in force at the imagined steps j*k .. (j+1)*k - 1
-        plan: dict[str, Any] = {"code": codes, "carry": None}
-
-        def goal_features(code: th.Tensor, decoded: th.Tensor) -> th.Tensor:
-            return decoded if self.decoded_subgoal_input else code
+        plan: list[Any] = [codes, None]  # code in force, carry of replan
+        recent: list[LatentState] = []
+        feats, actions, rewards, conts = [], [], [], []
 
         @th.no_grad()
-        def replan(states: list[LatentState]) -> th.Tensor:
-            window = th.stack([wm.features(s.detach()) for s in states[-k:]], 1)  # (N, k, D + G*K)
-            code, plan["carry"] = fn(window, plan["code"], plan["carry"])
-            plan["code"] = code.reshape(code.shape[0], self.subgoal_dim).float()
-            planned.append(self.autoencoder.decode(plan["code"]))
-            return goal_features(plan["code"], planned[-1])
+        def replanned() -> th.Tensor:
+            window = th.stack([wm.features(s.detach()) for s in recent[-k:]], 1)  # (N, k, D + G*K)
+            code, plan[1] = replan(window, plan[0], plan[1])  # type: ignore[misc]
+            plan[0] = code.reshape(code.shape[0], self.subgoal_dim).float()
+            planned.append(self.autoencoder.decode(plan[0]))
+            return planned[-1] if self.decoded_subgoal_input else plan[0]
 
-        rollout = self._imagine(start, goal_features(codes, target), replan)
-        # the target of s_{t+1} is the one pursued by a_t, i.e. in force at step t
-        targets = th.stack([target] + [planned[t // k] for t in range(horizon)], 0)
-        return (*rollout, targets)
+        def step(t: int, state: LatentState) -> th.Tensor | None:
+            nonlocal goal_feat
+            if replanning:
+                recent.append(state)
+                del recent[:-k]
+                if t > 0 and t % k == 0:
+                    goal_feat = replanned()
+            feat, reward, cont = self.features(state, goal_feat)
+            feats.append(feat)
+            rewards.append(reward)
+            conts.append(cont)
+            if t == horizon:
+                return None
+            action = actor(feat.detach()).sample()  # (N, *action_shape)
+            actions.append(action)
+            return action.reshape(action.shape[0], self.action_dim)
 
-    def context_start(self, samples: Any) -> LatentState | None:
-        """The world state before each chunk of a batch, from its replay context (``samples.context``, see
-        :mod:`sb3_hieros.buffers`), or None (start from zeros) for a batch without one.
+        states, _ = wm.rollout(start, horizon, step)
+        if replanning:  # the target of s_{t+1} is the one pursued by a_t, i.e. in force at step t
+            target = th.stack([planned[0]] + [planned[t // k] for t in range(horizon)], 0)
+        return Imagination(
+            states, th.stack(feats, 0), th.stack(actions, 0), th.stack(rewards, 0), th.stack(conts, 0), target
+        )
 
-        :param samples: a batch of B chunks
-        :return: state of batch shape (B,) or None
+    def imagined_rewards(self, imagined: Imagination) -> dict[str, th.Tensor]:
+        """Rewards per imagined state s_0..s_H (eq. 4.3-4.5; index 0 is not used by the returns): extrinsic = the
+        reward head; subgoal = max-cosine of h and the decoded subgoal (not at the top level); novelty = the
+        autoencoder's reconstruction error of h (without gradient, if its weight is > 0).
+
+        :param imagined: the trajectory of :meth:`imagine`
+        :return: term -> (H+1, N)
         """
-        context = getattr(samples, "context", None)
-        return None if context is None else self.world_model.unpack_context(context)
+        deter = imagined.states.deter
+        rewards = {"extrinsic": imagined.rewards}
+        if imagined.targets is not None:
+            rewards["subgoal"] = max_cosine_subgoal_reward(deter, imagined.targets)  # in [-1, 1]
+        if "novelty" in self.reward_terms:
+            with th.no_grad():
+                rewards["novelty"] = novelty_reward(deter, self.autoencoder)
+        return rewards
 
-    def world_model_step(self, batch: SequenceSamples, samples: Any) -> tuple[dict[str, float], LatentState]:
-        """Step 1 of :meth:`train_step` (also used by the shared-world-model hierarchy): one world-model update on
-        ``batch``, started from the replay context of ``samples`` (:meth:`context_start`), whose packed posterior
-        states it keeps in :attr:`last_context` (None without a context).
-
-        :param batch: the checked batch the world model trains on (previous actions as float vectors)
-        :param samples: the batch as sampled (its ``context``, if any)
-        :return: metrics ``wm/*`` (with ``wm/lr``) and ``nonfinite/world_model``, and the detached posterior states
-        """
-        wm = self.world_model
-        wm_metrics, post = wm.train_step(batch, self.wm_optimizer, self.wm_scheduler, self.context_start(samples))
-        self.last_context = None if getattr(samples, "context", None) is None else wm.pack_context(post)
-        metrics = {f"wm/{k}": float(v) for k, v in wm_metrics.items()}
-        metrics["nonfinite/world_model"] = metrics.pop("wm/nonfinite")
-        metrics["wm/lr"] = float(self.wm_optimizer.param_groups[0]["lr"])
-        return metrics, post
-
-    def train_step(self, samples: Any) -> dict[str, float]:
+    def train_step(self, samples: SequenceSamples, replan: Replan | None = None) -> LevelUpdate:
         """One training iteration of this level on a batch of chunks (Algorithm 2, thesis 4.6.2).
 
-        1. World-model step on the chunk (eq. 4.10-4.13, warm-up scheduler, clip ``world_model.grad_clip``).
+        1. World-model step on the chunk (eq. 4.10-4.13, warm-up scheduler, clip ``world_model.grad_clip``), from
+           the replay context where the batch has one.
         2. Imagination of ``imag_horizon`` steps from all B*T detached posterior states (or the share
-           ``imag_start_fraction`` of them, :func:`imagination_start_indices`), each row's subgoal held fixed.
-        3. Rewards per imagined state (eq. 4.3-4.5): extrinsic = reward head; subgoal = max-cosine of h and the
-           decoded subgoal (not at the top level); novelty = autoencoder reconstruction error of h (no gradient).
-           Continues: ``1 - is_terminal`` for the start state, the continue head afterwards.
-        4. Actor and critic losses (:meth:`ActorCritic.loss`), one step each, slow-critic EMA.
-        5. Autoencoder step (eq. 4.2) on the sampled and imagined h (detached).
+           ``imag_start_fraction`` of them, :func:`~sb3_hieros.agent.learning.imagination_start_indices`), each
+           row's subgoal held fixed or updated by ``replan`` (:meth:`imagine`).
+        3. Rewards per imagined state (:meth:`imagined_rewards`); continues: ``1 - is_terminal`` for the start state,
+           the continue head afterwards.
+        4. Actor and critic steps, slow-critic EMA; 5. autoencoder step on the sampled and imagined h
+           (:func:`~sb3_hieros.agent.learning.learn_from_imagination`).
 
-        Metrics (floats): ``wm/*`` (world-model loss terms, ``grad_norm``, ``lr``); ``actor/loss``,
-        ``actor/entropy``, ``actor/advantage_mean``, ``actor/advantage_std``, ``actor/grad_norm``; ``critic/loss``
-        and per active term ``critic/<term>_loss``, ``critic/<term>_value``, ``critic/<term>_grad_norm``,
-        ``return/<term>``, ``return/<term>_scale``; ``reward/<term>`` = mean predicted reward of the imagined states
-        s_1..s_H for every computed term (``subgoal`` below the top, ``novelty`` if its weight is > 0);
-        ``subgoal/final_reward`` = mean subgoal reward of the last imagined state s_H and ``subgoal/success`` = the
-        fraction of rollouts whose s_H reaches a subgoal reward >= :data:`SUBGOAL_SUCCESS_THRESHOLD` (below the top
-        only); ``imag/continue`` = mean continue probability of s_1..s_H; ``ae/*`` (autoencoder loss terms,
-        ``grad_norm``); ``nonfinite/<name>`` for ``world_model``, ``actor``, ``critic`` and ``autoencoder``: 1.0 when
-        that step was skipped because its loss or gradient norm was not finite (no parameter or optimiser state
-        changes; a skipped actor or critic step also undoes the return normalisers' update, a skipped critic step
-        leaves the slow critics alone), else 0.0.
+        Metrics: ``wm/*`` (world-model loss terms, ``grad_norm``, ``lr``); ``actor/*``, ``critic/*``, ``return/*``,
+        ``reward/<term>`` (mean over s_1..s_H) and ``ae/*`` (see ``learn_from_imagination``); below the top
+        ``subgoal/final_reward`` (mean subgoal reward of s_H) and ``subgoal/success`` (share of rollouts whose s_H
+        reaches :data:`~sb3_hieros.agent.learning.SUBGOAL_SUCCESS_THRESHOLD`); ``imag/continue`` (mean continue
+        probability of s_1..s_H); ``nonfinite/<name>`` for ``world_model``, ``actor``, ``critic`` and
+        ``autoencoder``: 1.0 when that step was skipped because its loss or gradient norm was not finite.
 
-        :param samples: :class:`~sb3_hieros.buffers.SequenceSamples` (B, T, ...): ``actions[:, t]`` = a_{t-1} (float
-            vectors or, for discrete spaces, indices, see :meth:`action_vectors`); ``subgoals`` (B, T, n_cat *
-            n_classes) or (B, T, n_cat, n_classes) required unless this is the top level; with a ``context``
-            the world model starts each chunk there (:meth:`context_start`) and :attr:`last_context` holds the
-            packed posterior states for the buffer's ``store_context``
-        :return: metrics
+        :param samples: a batch of this level's replay (B, T, ...): ``actions[:, t]`` = a_{t-1} (float vectors or
+            indices, see :meth:`action_vectors`), ``subgoals`` below the top level, ``context`` with a replay context
+        :param replan: subgoal updates during imagination (ablation 5.3.9), or None
+        :return: the metrics and the packed posterior states for the replay context
         """
-        batch, subgoals = self._check_samples(samples)
-        tensors: dict[str, th.Tensor] = {}
+        batch, subgoals = self.training_batch(samples)
+        tensors, post, context = self.world_model_step(batch, samples.context)
+        lr = float(self.wm_optimizer.param_groups[0]["lr"])
 
-        # (1) world model, from the replay context where the batch has one
-        metrics, post = self.world_model_step(batch, samples)
-
-        # (2) imagination from every posterior state (or imag_start_fraction of them), subgoal of the row held fixed
         start = post.flatten_batch()  # (N,) with N = B*T, detached
         first_cont = 1.0 - batch.is_terminal.reshape(-1).float()  # (N,)
-        flat_goals = None if subgoals is None else subgoals.reshape(-1, self.subgoal_dim)  # (N, G)
+        codes = None if subgoals is None else subgoals.reshape(-1, self.subgoal_dim)  # (N, G)
         chosen = imagination_start_indices(
             int(start.batch_shape[0]), self.config.imag_start_fraction, start.deter.device
         )
         if chosen is not None:
             start, first_cont = start.select(chosen), first_cont[chosen]
-            flat_goals = None if flat_goals is None else flat_goals[chosen]
-        goal = goal_feat = None
-        if flat_goals is not None:
-            with th.no_grad():
-                goal = self.autoencoder.decode(flat_goals)  # (N, D): target in this level's h space
-            goal_feat = goal if self.decoded_subgoal_input else flat_goals
+            codes = None if codes is None else codes[chosen]
         dynamics = self.imag_gradient == "dynamics"
         with contextlib.nullcontext() if dynamics else th.no_grad():
-            if self.imagination_subgoal_fn is not None and subgoals is not None:  # ablation 5.3.9
-                traj, feats, actions, ext_reward, cont_pred, goal = self._imagine_updating_subgoals(start, flat_goals)
-            else:
-                traj, feats, actions, ext_reward, cont_pred = self._imagine(start, goal_feat)
-
-            # (3) rewards per state s_0..s_H (index 0 unused by the returns)
-            rewards = {"extrinsic": ext_reward}
-            if goal is not None:
-                rewards["subgoal"] = max_cosine_subgoal_reward(traj.deter, goal)  # (H+1, N), in [-1, 1]
-            if "novelty" in self.reward_terms:
-                with th.no_grad():
-                    rewards["novelty"] = novelty_reward(traj.deter, self.autoencoder)
-        continues = th.cat([first_cont.unsqueeze(0), cont_pred[1:].detach()], 0)  # (H+1, N)
-
-        # (4) actor and critics, (5) subgoal autoencoder on the sampled (s_0) and imagined (s_1..s_H) states
-        tensors.update(learn_from_imagination(self, feats, actions, rewards, continues, traj.deter))
+            imagined = self.imagine(start, codes, replan)
+            rewards = self.imagined_rewards(imagined)
+        continues = th.cat([first_cont.unsqueeze(0), imagined.continues[1:].detach()], 0)  # (H+1, N)
+        deter = imagined.states.deter
+        tensors.update(learn_from_imagination(self, imagined.features, imagined.actions, rewards, continues, deter))
         if "subgoal" in rewards:
             final = rewards["subgoal"][-1].detach()  # (N,)
             tensors["subgoal/final_reward"] = final.mean()
             tensors["subgoal/success"] = (final >= SUBGOAL_SUCCESS_THRESHOLD).float().mean()
-        tensors["imag/continue"] = cont_pred[1:].detach().mean()
-        metrics.update(metric_floats(tensors))
-        return metrics
+        tensors["imag/continue"] = imagined.continues[1:].detach().mean()
+        return LevelUpdate({**metric_floats(tensors), "wm/lr": lr}, context)
 
     # ------------------------------------------------------------------------------------------------ bookkeeping
 

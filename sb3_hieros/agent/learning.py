@@ -1,0 +1,189 @@
+"""What every level learns from its imagination, with or without a world model of its own (thesis 4.3, 4.6.2).
+
+:func:`level_actor_critic` and :func:`level_optimizers` build a level's actor-critic (with the reward weights of
+eq. 4.3) and its optimisers; :func:`imagination_start_indices` picks the posterior states that start imagination;
+:func:`learn_from_imagination` takes the actor, critic and subgoal-autoencoder steps on an imagined trajectory
+(Algorithm 2 lines 8-10). Both :class:`~sb3_hieros.agent.subactor.Subactor` and the levels of the shared-world-model
+ablation (:mod:`sb3_hieros.agent.shared`) use them.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import torch as th
+from torch import nn
+
+from sb3_hieros.agent.actor_critic import ActorCritic
+from sb3_hieros.agent.subgoal import SubgoalAutoencoder
+from sb3_hieros.config import HierosConfig
+from sb3_hieros.nn.guard import step_if_finite
+
+__all__ = [
+    "SUBGOAL_SUCCESS_THRESHOLD",
+    "ImaginationLearner",
+    "imagination_start_indices",
+    "learn_from_imagination",
+    "level_actor_critic",
+    "level_optimizers",
+]
+
+#: A subgoal counts as reached when the max-cosine reward (eq. 4.4) of the last imagined state is at least this.
+SUBGOAL_SUCCESS_THRESHOLD = 0.5
+
+
+def level_actor_critic(
+    feat_dim: int, kind: str, classes: int, groups: int, gradient: str, config: HierosConfig, subgoal_input: bool
+) -> ActorCritic:
+    """The actor-critic of one level with the reward weights of eq. 4.3 (and the switch of ablation 5.3.10).
+
+    :param feat_dim: actor / critic input size
+    :param kind: ``"discrete"`` or ``"box"``
+    :param classes: classes per categorical (discrete) or action dims (box)
+    :param groups: number of categoricals
+    :param gradient: ``"reinforce"`` or ``"dynamics"``
+    :param config: hyperparameters (``actor_critic``, ``extrinsic_reward_levels``, ``reference``)
+    :param subgoal_input: False for the top level (no subgoal critic)
+    :return: the actor-critic
+    """
+    ac = config.actor_critic
+    extrinsic_here = config.extrinsic_reward_levels == "all" or not subgoal_input  # ablation 5.3.10
+    weights = {
+        "extrinsic": ac.extrinsic_weight if extrinsic_here else 0.0,
+        "subgoal": ac.subgoal_weight if subgoal_input else 0.0,
+        "novelty": ac.novelty_weight,
+    }
+    return ActorCritic(
+        feat_dim,
+        kind,
+        classes,
+        groups,
+        hidden=ac.units,
+        layers=ac.layers,
+        reward_weights=weights,
+        discount=ac.discount,
+        lambda_=ac.lambda_,
+        entropy_coef=ac.entropy,
+        gradient=gradient,
+        unimix=ac.unimix,
+        slow_fraction=ac.slow_critic_fraction,
+        reinforce_advantage=config.reference.reinforce_advantage,
+    )
+
+
+def level_optimizers(
+    actor_critic: ActorCritic, autoencoder: SubgoalAutoencoder, config: HierosConfig
+) -> tuple[th.optim.Optimizer, th.optim.Optimizer, th.optim.Optimizer]:
+    """AdamW optimisers (no weight decay) of the actor, the critics and the subgoal autoencoder of one level.
+
+    :param actor_critic: the level's actor-critic
+    :param autoencoder: the level's subgoal autoencoder
+    :param config: hyperparameters (``actor_critic`` and ``subgoal`` sections)
+    :return: (actor, critic, autoencoder) optimisers
+    """
+    ac, sg = config.actor_critic, config.subgoal
+    return (
+        th.optim.AdamW(actor_critic.actor_parameters(), lr=ac.actor_lr, eps=ac.eps, weight_decay=0.0),
+        th.optim.AdamW(actor_critic.critic_parameters(), lr=ac.critic_lr, eps=ac.eps, weight_decay=0.0),
+        th.optim.AdamW(autoencoder.parameters(), lr=sg.lr, eps=sg.eps, weight_decay=0.0),
+    )
+
+
+def imagination_start_indices(n_states: int, fraction: float, device: th.device) -> th.Tensor | None:
+    """Which of the B*T posterior states of a batch start an imagination rollout (Algorithm 2 line 6).
+
+    The thesis and DreamerV3 start from all of them (``fraction=1``); otherwise ``max(1, round(fraction * N))`` are
+    drawn uniformly without replacement (torch's global generator, so seeded runs stay reproducible).
+
+    :param n_states: posterior states of the batch, N = B*T
+    :param fraction: share of the states to start from, in (0, 1]
+    :param device: device of the indices
+    :return: (n,) indices into the N states, or None for all of them
+    """
+    count = max(1, round(fraction * n_states))
+    if count >= n_states:
+        return None
+    return th.randperm(n_states, device=device)[:count]
+
+
+class ImaginationLearner(Protocol):
+    """What :func:`learn_from_imagination` needs of a level (a :class:`Subactor` or a shared-world-model level)."""
+
+    config: HierosConfig
+    actor_critic: ActorCritic
+    autoencoder: SubgoalAutoencoder
+    actor_optimizer: th.optim.Optimizer
+    critic_optimizer: th.optim.Optimizer
+    ae_optimizer: th.optim.Optimizer
+
+
+def learn_from_imagination(
+    level: ImaginationLearner,
+    feats: th.Tensor,
+    actions: th.Tensor,
+    rewards: dict[str, th.Tensor],
+    continues: th.Tensor,
+    h_all: th.Tensor,
+) -> dict[str, th.Tensor]:
+    """Actor, critic and subgoal-autoencoder steps of one level on its imagined trajectory (Algorithm 2 lines 8-10).
+
+    Actor (eq. 4.6-4.9) and critics (eq. 4.3 terms) each take one guarded step (:func:`step_if_finite`): a skipped
+    actor or critic step also undoes the return normalisers' update, and the slow critics follow only a taken critic
+    step. The autoencoder (eq. 4.2) trains on ``h_all`` detached. Every gradient stays in its own module.
+
+    :param level: the level whose modules and optimisers train
+    :param feats: (M+1, N, F) actor inputs of s_0..s_M
+    :param actions: (M, N, *action_shape) imagined actions
+    :param rewards: term -> (M+1, N) rewards of s_0..s_M (index 0 unused by the returns)
+    :param continues: (M+1, N) continue flags
+    :param h_all: (..., D) deterministic states the autoencoder trains on
+    :return: 0-d metric tensors: ``actor/*``, ``critic/*`` (per term ``<term>_loss``, ``<term>_value``,
+        ``<term>_grad_norm``), ``return/<term>``, ``return/<term>_scale``, ``reward/<term>``, ``ae/*`` and
+        ``nonfinite/{actor,critic,autoencoder}`` (1.0 where that step was skipped)
+    """
+    clip = level.config.actor_critic.grad_clip
+    ac = level.actor_critic
+    out: dict[str, th.Tensor] = {}
+    retnorm_state = {k: v.clone() for k, v in ac.normalizers.state_dict().items()}
+    actor_loss, critic_loss, ac_metrics = ac.loss(feats, actions, rewards, continues)
+    actor_params = list(ac.actor_parameters())
+    level.actor_optimizer.zero_grad(set_to_none=True)
+    actor_loss.backward(inputs=actor_params)  # never accumulates into world model / autoencoder / critics
+    out["actor/grad_norm"] = nn.utils.clip_grad_norm_(actor_params, clip)
+    actor_ok = step_if_finite(level.actor_optimizer, actor_loss, out["actor/grad_norm"])
+    level.critic_optimizer.zero_grad(set_to_none=True)
+    critic_loss.backward(inputs=list(ac.critic_parameters()))
+    for name, critic in ac.critics.items():
+        out[f"critic/{name}_grad_norm"] = nn.utils.clip_grad_norm_(critic.net.parameters(), clip)
+    critic_ok = step_if_finite(level.critic_optimizer, critic_loss, *(out[f"critic/{n}_grad_norm"] for n in ac.critics))
+    if not (actor_ok and critic_ok):  # keep the return statistics finite too
+        ac.normalizers.load_state_dict(retnorm_state)
+    if critic_ok:
+        ac.update_slow_critics()
+
+    ae_params = list(level.autoencoder.parameters())
+    ae_loss, ae_metrics = level.autoencoder.loss(h_all.detach().reshape(-1, h_all.shape[-1]))
+    level.ae_optimizer.zero_grad(set_to_none=True)
+    ae_loss.backward(inputs=ae_params)
+    out["ae/grad_norm"] = nn.utils.clip_grad_norm_(ae_params, level.config.subgoal.grad_clip)
+    ae_ok = step_if_finite(level.ae_optimizer, ae_loss, out["ae/grad_norm"])
+
+    one = feats.new_ones(())
+    out["nonfinite/actor"] = one * (not actor_ok)
+    out["nonfinite/critic"] = one * (not critic_ok)
+    out["nonfinite/autoencoder"] = one * (not ae_ok)
+    out["actor/loss"] = ac_metrics["actor_loss"]
+    out["actor/entropy"] = ac_metrics["actor_entropy"]
+    out["actor/advantage_mean"] = ac_metrics["advantage_mean"]
+    out["actor/advantage_std"] = ac_metrics["advantage_std"]
+    out["critic/loss"] = ac_metrics["critic_loss"]
+    for name in ac.critics:
+        out[f"critic/{name}_loss"] = ac_metrics[f"{name}/critic_loss"]
+        out[f"critic/{name}_value"] = ac_metrics[f"{name}/value_mean"]
+        out[f"return/{name}"] = ac_metrics[f"{name}/return_mean"]
+        out[f"return/{name}_scale"] = ac_metrics[f"{name}/return_scale"]
+    for name, r in rewards.items():
+        out[f"reward/{name}"] = r[1:].detach().mean()
+    for key, value in ae_metrics.items():
+        out["ae/" + key.split("/", 1)[1]] = value
+    return out

@@ -1,0 +1,137 @@
+"""DreamerV3's recurrent state-space model (RSSM) behind the S5WM interface (ablation 5.3.2)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch as th
+import torch.nn.functional as F
+from gymnasium import spaces
+from torch import nn
+
+from sb3_hieros.agent.world_model.base import WorldModel
+from sb3_hieros.agent.world_model.latent import LatentState
+from sb3_hieros.agent.world_model.layers import InputLayer, LayerNormGRUCell
+from sb3_hieros.config import WorldModelConfig
+from sb3_hieros.nn.networks import MLP, trunc_normal_init_
+
+__all__ = ["RSSMWorldModel"]
+
+
+class RSSMWorldModel(WorldModel):
+    """DreamerV3's recurrent state-space model behind the same interface (ablation 5.3.2).
+
+    ``h_t = GRU(h_{t-1}, Inp(z_{t-1}, a_{t-1}))``, posterior ``q(z_t | h_t, e_t)``, prior ``p(z^_t | h_t)``. The
+    GRU state is the deterministic state (``seq`` and ``deter`` are the same tensor). The posterior depends on
+    ``h_t``, so :meth:`observe` runs a time loop; everything that does not depend on the loop is hoisted out of it.
+
+    :param observation_space: observation space of this level
+    :param action_dim: size of the action vector
+    :param config: world-model hyperparameters (``kind == "rssm"``; the S5 fields are unused)
+    :param bf16: bfloat16 autocast opt-in (outside the time loop only)
+    :param compile: ``torch.compile`` the loop cell
+    """
+
+    kind = "rssm"
+    _deter_is_seq = True
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_dim: int,
+        config: WorldModelConfig,
+        bf16: bool = False,
+        compile: bool = False,
+    ) -> None:
+        super().__init__(observation_space, action_dim, config, bf16, compile)
+        c = config
+        self.inp = InputLayer(self.stoch_dim, self.action_dim, c.hidden)
+        self.gru = LayerNormGRUCell(c.hidden, self.deter_dim)
+        self.prior_net = MLP(self.deter_dim, self.stoch_dim, c.hidden, layers=1)
+        # posterior MLP on [h_t, e_t], split into halves so that the embedding half leaves the loop
+        self.post_deter = nn.Linear(self.deter_dim, c.hidden, bias=False)
+        self.post_embed = nn.Linear(self.embed_dim, c.hidden, bias=False)
+        self.post_norm = nn.LayerNorm(c.hidden, eps=1e-3)
+        self.post_out = nn.Linear(c.hidden, self.stoch_dim)
+        for layer in (self.post_deter, self.post_embed, self.post_out):
+            trunc_normal_init_(layer)
+        self._cell: Callable[..., tuple[th.Tensor, th.Tensor]] = self._cell_eager
+        if compile:
+            self._cell = th.compile(self._cell_eager)
+
+    def _initial_state(self, batch_size: int) -> LatentState:
+        deter = th.zeros(batch_size, self.deter_dim, device=self.device)
+        uniform = self._uniform_logits(batch_size)
+        return LatentState(th.zeros(batch_size, self.stoch_dim, device=self.device), deter, deter, uniform, uniform)
+
+    def _cell_eager(
+        self, stoch: th.Tensor, action_pre: th.Tensor, deter: th.Tensor, embed_pre: th.Tensor
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """One loop step: GRU update and raw posterior logits (the part that cannot leave the loop).
+
+        :param stoch: (B, G*K) z_{t-1} (already zeroed where reset)
+        :param action_pre: (B, hidden) ``W_a a_{t-1}``
+        :param deter: (B, D) h_{t-1} (already zeroed where reset)
+        :param embed_pre: (B, hidden) embedding half of the posterior layer
+        :return: h_t (B, D) and raw posterior logits (B, G*K)
+        """
+        x = self.inp.combine(self.inp.stoch(stoch) + action_pre)
+        deter = self.gru(x, deter)
+        post_raw = self.post_out(F.silu(self.post_norm(self.post_deter(deter) + embed_pre)))
+        return deter, post_raw
+
+    def _observe(
+        self,
+        obs: dict[str, th.Tensor],
+        actions: th.Tensor,
+        is_first: th.Tensor,
+        state: LatentState | None,
+        deterministic: bool,
+    ) -> tuple[LatentState, th.Tensor]:
+        batch, length = actions.shape[:2]
+        state = self.initial_state(batch) if state is None else state
+        embed = self._embed(obs, (batch, length))
+        keep = (~is_first).unsqueeze(-1).to(actions.dtype)  # (B, T, 1)
+        with self._autocast():
+            embed_pre = self.post_embed(embed).float()  # (B, T, hidden), hoisted
+        action_pre = self.inp.action(actions * keep)  # (B, T, hidden), hoisted
+        stoch, deter = state.stoch, state.deter
+        stochs, deters, logits = [], [], []
+        for e_t, a_t, k_t in zip(embed_pre.unbind(1), action_pre.unbind(1), keep.unbind(1), strict=True):
+            deter, post_raw = self._cell(stoch * k_t, a_t, deter * k_t, e_t)
+            stoch, post_logits = self._draw(post_raw, deterministic)
+            stochs.append(stoch)
+            deters.append(deter)
+            logits.append(post_logits)
+        deter_seq = th.stack(deters, 1)  # (B, T, D)
+        with self._autocast():
+            prior_raw = self.prior_net(deter_seq)  # hoisted
+        prior_logits = self._normalise(prior_raw)
+        post = LatentState(th.stack(stochs, 1), deter_seq, deter_seq, th.stack(logits, 1), prior_logits)
+        return post, prior_logits
+
+    def _obs_step(
+        self,
+        state: LatentState,
+        obs: dict[str, th.Tensor],
+        action: th.Tensor,
+        is_first: th.Tensor,
+        deterministic: bool,
+    ) -> LatentState:
+        batch = int(action.shape[0])
+        keep = (~is_first).unsqueeze(-1).to(action.dtype)
+        embed = self._embed(obs, (batch,))
+        with self._autocast():
+            embed_pre = self.post_embed(embed).float()
+        deter, post_raw = self._cell(state.stoch * keep, self.inp.action(action * keep), state.deter * keep, embed_pre)
+        stoch, post_logits = self._draw(post_raw, deterministic)
+        with self._autocast():
+            prior_raw = self.prior_net(deter)
+        return LatentState(stoch, deter, deter, post_logits, self._normalise(prior_raw))
+
+    def _img_step(self, state: LatentState, action: th.Tensor, deterministic: bool) -> tuple[LatentState, th.Tensor]:
+        with self._autocast():
+            deter = self.gru(self.inp(state.stoch, action), state.deter).float()
+            prior_raw = self.prior_net(deter)
+        stoch, prior_logits = self._draw(prior_raw, deterministic)
+        return LatentState(stoch, deter, deter, prior_logits, prior_logits), prior_logits

@@ -1,0 +1,150 @@
+"""S5WM (thesis 4.4): the world model whose sequence model is a stack of resettable S5 blocks."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+
+import torch as th
+from gymnasium import spaces
+from torch import nn
+
+from sb3_hieros.agent.world_model.base import WorldModel
+from sb3_hieros.agent.world_model.latent import LatentState
+from sb3_hieros.agent.world_model.layers import InputLayer
+from sb3_hieros.config import WorldModelConfig
+from sb3_hieros.nn.distributions import symlog
+from sb3_hieros.nn.networks import MLP, trunc_normal_init_
+from sb3_hieros.nn.s5 import S5Stack, compile_s5
+
+__all__ = ["S5WorldModel"]
+
+
+class S5WorldModel(WorldModel):
+    """S5WM (thesis 4.4): posterior from the observation alone, a stack of resettable S5 blocks as sequence model,
+    ``h_t`` read out of the internal S5 states (thesis 5.3.5) and the prior from the stack output ``m_t``.
+
+    :param observation_space: observation space of this level
+    :param action_dim: size of the action vector
+    :param config: world-model hyperparameters (``kind == "s5"``)
+    :param bf16: bfloat16 autocast opt-in
+    :param compile: ``torch.compile`` the S5 stack's parallel scan (``sb3_hieros.nn.s5.compile_s5``; the step form
+        used for acting and imagination stays eager)
+    """
+
+    kind = "s5"
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_dim: int,
+        config: WorldModelConfig,
+        bf16: bool = False,
+        compile: bool = False,
+    ) -> None:
+        super().__init__(observation_space, action_dim, config, bf16, compile)
+        c = config
+        self.inp = InputLayer(self.stoch_dim, self.action_dim, c.s5_model_dim)
+        self.sequence_model = S5Stack(c.s5_layers, c.s5_model_dim, c.s5_state_dim, c.s5_hippo_blocks, c.dropout)
+        readout_in = 2 * c.s5_layers * c.s5_state_dim if c.deter_from == "state" else c.s5_model_dim
+        self.deter_out = nn.Linear(readout_in, self.deter_dim)
+        trunc_normal_init_(self.deter_out)
+        self.prior_net = MLP(c.s5_model_dim, self.stoch_dim, c.hidden, layers=1)
+        self.post_net = MLP(self.embed_dim, self.stoch_dim, c.hidden, layers=1)
+        if compile:
+            # the S5 module's own opt-in: real-split parallel scan under torch.compile; the step form stays eager
+            compile_s5(self.sequence_model)
+        self._seq_forward: Callable[..., tuple[th.Tensor, th.Tensor]] = self.sequence_model.forward
+        self._seq_step: Callable[..., tuple[th.Tensor, th.Tensor]] = self.sequence_model.step
+
+    def reuse_step_weights(self) -> contextlib.AbstractContextManager:
+        return self.sequence_model.reuse_step_weights()
+
+    def no_weight_decay_parameters(self) -> list[nn.Parameter]:
+        """SSM parameters of the S5 stack (Lambda, B, Delta) plus all 1-d parameters.
+
+        :return: list of parameters
+        """
+        params = {id(p): p for p in self.sequence_model.ssm_parameters()}
+        params.update({id(p): p for p in super().no_weight_decay_parameters()})
+        return list(params.values())
+
+    def _initial_state(self, batch_size: int) -> LatentState:
+        uniform = self._uniform_logits(batch_size)
+        return LatentState(
+            stoch=th.zeros(batch_size, self.stoch_dim, device=self.device),
+            deter=th.zeros(batch_size, self.deter_dim, device=self.device),
+            seq=self.sequence_model.initial_state(batch_size, self.device),
+            logits=uniform,
+            prior_logits=uniform,
+        )
+
+    def _deterministic_state(self, seq: th.Tensor, out: th.Tensor) -> th.Tensor:
+        """h_t = symlog(Linear([Re x_t, Im x_t] of all layers)) (thesis 5.3.5) or symlog(Linear(m_t)).
+
+        :param seq: (..., L, P) complex S5 states
+        :param out: (..., H) stack output m_t
+        :return: (..., D) float32
+        """
+        source = th.view_as_real(seq).flatten(-3) if self.config.deter_from == "state" else out
+        return symlog(self.deter_out(source).float())
+
+    def _observe(
+        self,
+        obs: dict[str, th.Tensor],
+        actions: th.Tensor,
+        is_first: th.Tensor,
+        state: LatentState | None,
+        deterministic: bool,
+    ) -> tuple[LatentState, th.Tensor]:
+        batch, length = actions.shape[:2]
+        embed = self._embed(obs, (batch, length))  # (B, T, E)
+        with self._autocast():
+            post_raw = self.post_net(embed)
+        stoch, post_logits = self._draw(post_raw, deterministic)  # (B, T, G*K), (B, T, G, K)
+        first_prev = th.zeros_like(stoch[:, :1]) if state is None else state.stoch.unsqueeze(1)
+        prev_stoch = th.cat([first_prev, stoch[:, :-1]], 1)  # z_{t-1}
+        keep = (~is_first).unsqueeze(-1).to(stoch.dtype)  # (B, T, 1)
+        with self._autocast():
+            u = self.inp(prev_stoch * keep, actions * keep)  # (B, T, H)
+            out, seq = self._seq_forward(u.float(), is_first, None if state is None else state.seq)
+            deter = self._deterministic_state(seq, out)  # (B, T, D)
+            prior_raw = self.prior_net(out)
+        prior_logits = self._normalise(prior_raw)
+        return LatentState(stoch, deter, seq, post_logits, prior_logits), prior_logits
+
+    def _prior_step(
+        self, state: LatentState, action: th.Tensor, reset: th.Tensor | None
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        """(m_t, h_t) = f(h_{t-1}, z_{t-1}, a_{t-1}) in step form; returns deter, S5 states and raw prior logits."""
+        stoch = state.stoch
+        if reset is not None:
+            keep = (~reset).unsqueeze(-1).to(stoch.dtype)
+            stoch, action = stoch * keep, action * keep
+        with self._autocast():
+            u = self.inp(stoch, action)
+            out, seq = self._seq_step(u.float(), state.seq, reset)
+            deter = self._deterministic_state(seq, out)
+            prior_raw = self.prior_net(out)
+        return deter, seq, prior_raw
+
+    def _obs_step(
+        self,
+        state: LatentState,
+        obs: dict[str, th.Tensor],
+        action: th.Tensor,
+        is_first: th.Tensor,
+        deterministic: bool,
+    ) -> LatentState:
+        batch = int(action.shape[0])
+        deter, seq, prior_raw = self._prior_step(state, action, is_first)
+        embed = self._embed(obs, (batch,))
+        with self._autocast():
+            post_raw = self.post_net(embed)
+        stoch, post_logits = self._draw(post_raw, deterministic)
+        return LatentState(stoch, deter, seq, post_logits, self._normalise(prior_raw))
+
+    def _img_step(self, state: LatentState, action: th.Tensor, deterministic: bool) -> tuple[LatentState, th.Tensor]:
+        deter, seq, prior_raw = self._prior_step(state, action, None)
+        stoch, prior_logits = self._draw(prior_raw, deterministic)
+        return LatentState(stoch, deter, seq, prior_logits, prior_logits), prior_logits
