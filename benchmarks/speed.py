@@ -32,14 +32,8 @@ import torch
 from torch import nn
 
 from benchmarks._timing import Timing, environment_header, format_ms, time_interleaved
-from sb3_hieros.nn.s5 import (
-    S5Layer,
-    S5Stack,
-    _interleave,
-    associative_scan_resettable,
-    compile_s5,
-    resettable_scan,
-)
+from sb3_hieros.nn.s5 import S5Layer, S5Stack, associative_scan_resettable, compile_s5, resettable_scan
+from sb3_hieros.nn.scan import _interleave
 
 Elements = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 

@@ -45,6 +45,8 @@ from sb3_hieros.type_aliases import Observation
 
 __all__ = ["ImaginationCallback", "SubgoalDecodeCallback", "imagine_open_loop", "recent_window"]
 
+#: Where a callback writes its PNGs (None: TensorBoard only).
+SaveDir = str | os.PathLike | None
 #: Observation entries of at most this many dimensions are shown in the vector plots of ImaginationCallback.
 MAX_PLOTTED_DIMS = 16
 
@@ -293,12 +295,7 @@ class SubgoalDecodeCallback(_PeriodicDrawingCallback):
     """
 
     def __init__(
-        self,
-        every: int,
-        n_envs_shown: int = 1,
-        save_dir: str | os.PathLike | None = None,
-        tensorboard: bool = True,
-        verbose: int = 0,
+        self, every: int, n_envs_shown: int = 1, save_dir: SaveDir = None, tensorboard: bool = True, verbose: int = 0
     ) -> None:
         super().__init__(every, save_dir, tensorboard, verbose)
         if isinstance(n_envs_shown, bool) or not isinstance(n_envs_shown, int | np.integer) or n_envs_shown < 1:
@@ -402,7 +399,7 @@ class ImaginationCallback(_PeriodicDrawingCallback):
         every: int,
         horizon: int = 15,
         context: int = 5,
-        save_dir: str | os.PathLike | None = None,
+        save_dir: SaveDir = None,
         tensorboard: bool = True,
         verbose: int = 0,
     ) -> None:

@@ -188,30 +188,28 @@ class HIEROS(OffPolicyAlgorithm):
             raise ValueError(f"max_nonfinite_updates must be an int >= 1, got {max_nonfinite_updates!r}")
         base = get_preset(preset).replace(**(config_overrides or {}))
         given = {"buffer_size": buffer_size, "learning_starts": learning_starts, "batch_size": batch_size}
-        resolved = {name: getattr(base, name) if value is None else value for name, value in given.items()}
+        keywords = {name: getattr(base, name) if value is None else value for name, value in given.items()}
         super().__init__(
             policy,
             env,
             learning_rate=base.world_model.lr if learning_rate is None else learning_rate,
-            buffer_size=resolved["buffer_size"],
-            learning_starts=resolved["learning_starts"],
-            batch_size=resolved["batch_size"],
-            gamma=base.actor_critic.discount,
-            train_freq=(1, "step"),
-            gradient_steps=-1,
             replay_buffer_class=replay_buffer_class,
             replay_buffer_kwargs=replay_buffer_kwargs,
             optimize_memory_usage=False,
             policy_kwargs=policy_kwargs,
+            gamma=base.actor_critic.discount,
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
             verbose=verbose,
             device=device,
+            train_freq=(1, "step"),
             support_multi_env=True,
             seed=seed,
             use_sde=False,
             sde_support=False,
+            gradient_steps=-1,
             supported_action_spaces=(spaces.Discrete, spaces.Box),
+            **keywords,
         )
         self.preset = preset
         self.config_overrides = dict(config_overrides or {})

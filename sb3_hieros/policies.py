@@ -90,7 +90,9 @@ class HierosPolicy(BasePolicy):
         self.config = config_from_dict(config)
         self.bf16 = bool(bf16)
         self.compile = bool(compile)
-        self.hierarchy = make_hierarchy(observation_space, action_space, self.config, self.bf16, self.compile)
+        self.hierarchy = make_hierarchy(
+            observation_space, action_space, self.config, bf16=self.bf16, compile=self.compile
+        )
         #: the level-0 world-model optimiser under SB3's conventional name (``load`` falls back on ``policy.optimizer``)
         self.optimizer = self.hierarchy.levels[0].wm_optimizer
         self._register_load_state_dict_pre_hook(_rename_flat_levels)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Collection, Iterator, Mapping
+from typing import Literal
 
 import torch as th
 from torch import nn
@@ -31,6 +32,10 @@ from sb3_hieros.nn.networks import MLP
 REWARD_TERMS = ("extrinsic", "subgoal", "novelty")
 #: Reward weights of thesis table 4.6.3 (extrinsic 1, subgoal 0.3, novelty 0.1).
 DEFAULT_REWARD_WEIGHTS: dict[str, float] = {"extrinsic": 1.0, "subgoal": 0.3, "novelty": 0.1}
+#: Bounds of the standard deviation of Box actions (:class:`~sb3_hieros.nn.distributions.BoundedNormal`, DreamerV3).
+ACTION_MIN_STD, ACTION_MAX_STD = 0.1, 1.0
+#: Bins of the critics' symlog two-hot value distribution (DreamerV3).
+VALUE_BINS = 255
 #: Names of the optional scalar actor inputs of eq. 4.6.
 EXTRA_INPUTS = ("reward", "cont", "entropy")
 
@@ -262,10 +267,6 @@ class Actor(nn.Module):
     :param hidden: MLP width
     :param layers: MLP hidden layers
     :param unimix: uniform mixture of the categorical
-    :param min_std: lower std bound of the normal
-    :param max_std: upper std bound of the normal
-    :param norm: LayerNorm in the MLP
-    :param act: activation class
     """
 
     def __init__(
@@ -277,10 +278,6 @@ class Actor(nn.Module):
         hidden: int = 256,
         layers: int = 2,
         unimix: float = 0.01,
-        min_std: float = 0.1,
-        max_std: float = 1.0,
-        norm: bool = True,
-        act: type[nn.Module] = nn.SiLU,
     ) -> None:
         super().__init__()
         if action_kind not in ("discrete", "box"):
@@ -291,15 +288,15 @@ class Actor(nn.Module):
             raise ValueError(f"action_groups must be 1 for box actions, got {action_groups}")
         if action_kind == "discrete" and action_dim < 2:
             raise ValueError(f"a discrete action needs at least 2 classes, got action_dim={action_dim}")
-        self.feat_dim = feat_dim
-        self.action_kind = action_kind
-        self.action_dim = action_dim
-        self.action_groups = action_groups
+        self.feat_dim, self.action_kind, self.action_dim, self.action_groups = (
+            feat_dim,
+            action_kind,
+            action_dim,
+            action_groups,
+        )
         self.unimix = unimix
-        self.min_std = min_std
-        self.max_std = max_std
         out = action_dim * action_groups if action_kind == "discrete" else 2 * action_dim
-        self.net = MLP(feat_dim, out, hidden, layers, norm=norm, act=act)
+        self.net = MLP(feat_dim, out, hidden, layers)
 
     @property
     def action_shape(self) -> tuple[int, ...]:
@@ -315,7 +312,7 @@ class Actor(nn.Module):
         out = self.net(feat)
         if self.action_kind == "box":
             mean_raw, std_raw = out.chunk(2, -1)
-            return BoundedNormal(mean_raw, std_raw, self.min_std, self.max_std)
+            return BoundedNormal(mean_raw, std_raw, ACTION_MIN_STD, ACTION_MAX_STD)
         logits = out.reshape(*out.shape[:-1], *self.action_shape)
         return OneHotCategoricalST(logits, self.unimix, event_ndims=1 if self.action_groups > 1 else 0)
 
@@ -340,25 +337,14 @@ class Critic(nn.Module):
     :param feat_dim: input features
     :param hidden: MLP width
     :param layers: MLP hidden layers
-    :param num_bins: two-hot bins (odd)
     :param slow_fraction: EMA fraction f of :meth:`update_slow`, in (0, 1]
     :param slow_reg: weight of the slow-critic regulariser
-    :param norm: LayerNorm in the MLP
-    :param act: activation class
     """
 
     bins: th.Tensor
 
     def __init__(
-        self,
-        feat_dim: int,
-        hidden: int = 256,
-        layers: int = 2,
-        num_bins: int = 255,
-        slow_fraction: float = 0.02,
-        slow_reg: float = 1.0,
-        norm: bool = True,
-        act: type[nn.Module] = nn.SiLU,
+        self, feat_dim: int, hidden: int = 256, layers: int = 2, slow_fraction: float = 0.02, slow_reg: float = 1.0
     ) -> None:
         super().__init__()
         if not 0.0 < slow_fraction <= 1.0:
@@ -367,10 +353,10 @@ class Critic(nn.Module):
             raise ValueError(f"slow_reg must be >= 0, got {slow_reg}")
         self.slow_fraction = slow_fraction
         self.slow_reg = slow_reg
-        self.net = MLP(feat_dim, num_bins, hidden, layers, norm=norm, act=act, out_scale=0.0)
+        self.net = MLP(feat_dim, VALUE_BINS, hidden, layers, out_scale=0.0)
         self.slow_net = copy.deepcopy(self.net).requires_grad_(False)
         # constant: non-persistent so that it stays out of the state_dict (SB3 save/load contract)
-        self.register_buffer("bins", symlog_bins(num_bins), persistent=False)
+        self.register_buffer("bins", symlog_bins(VALUE_BINS), persistent=False)
 
     def forward(self, feat: th.Tensor) -> TwoHotSymlog:
         """:param feat: (*B, feat_dim)
@@ -490,16 +476,11 @@ class ActorCritic(nn.Module):
     :param entropy_coef: eta
     :param gradient: ``"reinforce"``, ``"dynamics"`` or None (reinforce for discrete, dynamics for box)
     :param unimix: actor unimix (discrete)
-    :param min_std: actor std lower bound (box)
-    :param max_std: actor std upper bound (box)
     :param slow_fraction: slow-critic EMA fraction
     :param slow_reg: slow-critic regulariser weight
     :param retnorm_decay: return normaliser EMA decay
     :param retnorm_percentiles: return normaliser percentiles
     :param retnorm_min_scale: return normaliser floor
-    :param num_bins: critic two-hot bins
-    :param norm: LayerNorm in the MLPs
-    :param act: activation class
     :param reinforce_advantage: ``"normalized"`` (default, the A_t above) or ``"raw"``: REINFORCE uses the reference
         code's unnormalised weighted average ``sum_k alpha_k (R^k_t - v^k(s_t)) / sum_k alpha_k`` (research note 5.6,
         8.3; reference-compat switch). Dynamics backpropagation always uses A_t.
@@ -508,8 +489,9 @@ class ActorCritic(nn.Module):
     def __init__(
         self,
         feat_dim: int,
-        action_kind: str,
+        action_kind: Literal["discrete", "box"],
         action_dim: int,
+        *,
         action_groups: int = 1,
         hidden: int = 256,
         layers: int = 2,
@@ -519,16 +501,11 @@ class ActorCritic(nn.Module):
         entropy_coef: float = 3e-4,
         gradient: str | None = None,
         unimix: float = 0.01,
-        min_std: float = 0.1,
-        max_std: float = 1.0,
         slow_fraction: float = 0.02,
         slow_reg: float = 1.0,
         retnorm_decay: float = 0.99,
         retnorm_percentiles: tuple[float, float] = (5.0, 95.0),
         retnorm_min_scale: float = 1.0,
-        num_bins: int = 255,
-        norm: bool = True,
-        act: type[nn.Module] = nn.SiLU,
         reinforce_advantage: str = "normalized",
     ) -> None:
         super().__init__()
@@ -552,19 +529,19 @@ class ActorCritic(nn.Module):
             raise ValueError(f"discount must be in (0, 1], got {discount}")
         if entropy_coef < 0.0:
             raise ValueError(f"entropy_coef must be >= 0, got {entropy_coef}")
-        self.feat_dim = feat_dim
-        self.gradient = gradient
-        self.discount = discount
-        self.lambda_ = lambda_
-        self.entropy_coef = entropy_coef
+        self.feat_dim, self.gradient = feat_dim, gradient
+        self.discount, self.lambda_, self.entropy_coef = discount, lambda_, entropy_coef
         self.actor = Actor(
-            feat_dim, action_kind, action_dim, action_groups, hidden, layers, unimix, min_std, max_std, norm, act
+            feat_dim,
+            action_kind,
+            action_dim,
+            action_groups,
+            hidden,
+            layers,
+            unimix=unimix,
         )
         self.critics = nn.ModuleDict(
-            {
-                k: Critic(feat_dim, hidden, layers, num_bins, slow_fraction, slow_reg, norm, act)
-                for k in self.reward_weights
-            }
+            {k: Critic(feat_dim, hidden, layers, slow_fraction, slow_reg) for k in self.reward_weights}
         )
         self.normalizers = nn.ModuleDict(
             {k: ReturnNormalizer(retnorm_decay, retnorm_percentiles, retnorm_min_scale) for k in self.reward_weights}

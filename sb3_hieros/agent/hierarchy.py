@@ -74,6 +74,12 @@ class HierarchyStep(NamedTuple):
     prev_actions: tuple[th.Tensor, ...]
 
 
+#: per level, (n,) bool on the CPU: which envs the level updates at this step
+Masks = tuple[th.Tensor, ...]
+#: what the bottom-up half of a step produced: latent states, histories, and what acting needs besides
+Encoded = tuple[tuple[LatentState, ...], tuple[th.Tensor, ...], Any]
+
+
 def _scatter(old: th.Tensor, index: th.Tensor | None, new: th.Tensor) -> th.Tensor:
     """``old`` with rows ``index`` replaced by ``new`` (all rows if ``index`` is None)."""
     return new if index is None else old.index_copy(0, index, new)
@@ -98,8 +104,7 @@ class Hierarchy(nn.Module):
     :param observation_space: the environment's (checked, image-transposed) observation space
     :param action_space: the environment's (checked) action space
     :param config: the resolved configuration
-    :param bf16: bfloat16 autocast opt-in of the world models
-    :param compile: ``torch.compile`` opt-in of the world models
+    :param world_model_options: ``bf16`` and ``compile`` opt-ins of the world models
     """
 
     levels: nn.ModuleList
@@ -109,8 +114,7 @@ class Hierarchy(nn.Module):
         observation_space: spaces.Space,
         action_space: spaces.Space,
         config: HierosConfig,
-        bf16: bool = False,
-        compile: bool = False,
+        **world_model_options: bool,
     ) -> None:
         super().__init__()
         self.config = config
@@ -118,10 +122,10 @@ class Hierarchy(nn.Module):
         self.subgoal_interval = config.subgoal_interval
         #: ablation 5.3.6: a higher level observes only the newest of its window of lower states
         self.last_state_only = config.higher_level_input == "last"
-        self.levels = nn.ModuleList(self._build_levels(observation_space, action_space, bf16, compile))
+        self.levels = nn.ModuleList(self._build_levels(observation_space, action_space, world_model_options))
 
     def _build_levels(
-        self, observation_space: spaces.Space, action_space: spaces.Space, bf16: bool, compile: bool
+        self, observation_space: spaces.Space, action_space: spaces.Space, options: dict[str, bool]
     ) -> list[nn.Module]:
         """Level 0 on the environment's spaces, level i on the subgoal space and the stacked states of level i-1."""
         levels: list[Subactor] = []
@@ -136,8 +140,7 @@ class Hierarchy(nn.Module):
                     level=i,
                     subgoal_input=i < self.n_levels - 1,
                     decoded_subgoal_input=self.config.decoded_subgoal_input,
-                    bf16=bf16,
-                    compile=compile,
+                    **options,
                 )
             )
         return list(levels)
@@ -211,7 +214,7 @@ class Hierarchy(nn.Module):
         )
         return HierarchyState(th.zeros(n_envs, dtype=th.long), latents, actions, histories)
 
-    def _update_masks(self, step: th.Tensor, is_first: th.Tensor) -> tuple[th.Tensor, ...]:
+    def _update_masks(self, step: th.Tensor, is_first: th.Tensor) -> Masks:
         """Per level, (n,) bool on the CPU: level i updates an env when ``step % k**i == 0`` or the env starts an
         episode (level 0 always)."""
         masks = [th.ones_like(is_first)]
@@ -248,48 +251,69 @@ class Hierarchy(nn.Module):
         first_host = th.as_tensor(is_first, dtype=th.bool).reshape(n)
         masks = self._update_masks(state.step, first_host)
         device = state.actions[0].device
-        is_first = first_host.to(device)
-        latents = list(state.latents)
+        first = first_host.to(device)
+        encoded = self._encode(state, observation, first, masks, deterministic)  # Algorithm 1 lines 11-19
         actions = list(state.actions)
-        histories = list(state.histories)
-        levels: Any = self.levels
+        for i in reversed(range(self.n_levels)):  # top-down: act (Algorithm 1 lines 21-29)
+            if not bool(masks[i].any()):
+                continue
+            index = self._index(masks[i], device)
+            if random_actions is not None:
+                chosen = _take(random_actions[i], index)
+            else:
+                goal = None if i == self.n_levels - 1 else _take(actions[i + 1], index)  # subgoal from above
+                chosen = self._act(i, encoded, index, goal, deterministic)
+            actions[i] = _scatter(actions[i], index, chosen.to(actions[i].dtype))
+        latents, histories, _ = encoded
+        new_state = HierarchyState(state.step + 1, latents, tuple(actions), histories)
+        return new_state, HierarchyStep(masks, tuple(state.actions))
 
-        # bottom-up: encode (Algorithm 1 lines 11-19)
-        latents[0] = levels[0].observe_step(latents[0], observation, actions[0], is_first, deterministic)
+    def _encode(
+        self, state: HierarchyState, observation: Observation, is_first: th.Tensor, masks: Masks, deterministic: bool
+    ) -> Encoded:
+        """Bottom-up half of :meth:`step`: level 0 encodes o_t; each update of level i-1 pushes its world state into
+        level i's history, and an updating level i encodes its history.
+
+        :return: the new latent states, the new histories, and what :meth:`_act` needs besides (nothing here)
+        """
+        n = state.n_envs
+        latents, histories = list(state.latents), list(state.histories)
+        levels: Any = self.levels
+        latents[0] = levels[0].observe_step(latents[0], observation, state.actions[0], is_first, deterministic)
         for i in range(1, self.n_levels):
             history = histories[i - 1] * (~is_first).to(histories[i - 1].dtype).reshape(n, 1, 1)  # (n, k, D)
             lower = masks[i - 1]
             if bool(lower.any()):
                 pushed = th.cat([history[:, 1:], levels[i - 1].encoded_observation(latents[i - 1]).unsqueeze(1)], 1)
-                history = th.where(lower.to(device).reshape(n, 1, 1), pushed, history)
+                history = th.where(lower.to(is_first.device).reshape(n, 1, 1), pushed, history)
             histories[i - 1] = history
             if not bool(masks[i].any()):
                 continue
-            index = self._index(masks[i], device)
+            index = self._index(masks[i], is_first.device)
             new = levels[i].observe_step(
                 _rows(latents[i], index),
                 _take(self.observation_window(history), index),
-                _take(actions[i], index),
+                _take(state.actions[i], index),
                 _take(is_first, index),
                 deterministic,
             )
             latents[i] = _scatter_state(latents[i], index, new)
+        return tuple(latents), tuple(histories), None
 
-        # top-down: act (Algorithm 1 lines 21-29)
-        prev_actions = tuple(actions)
-        for i in reversed(range(self.n_levels)):
-            if not bool(masks[i].any()):
-                continue
-            index = self._index(masks[i], device)
-            if random_actions is None:
-                goal = None if i == self.n_levels - 1 else _take(actions[i + 1], index)  # subgoal from above
-                chosen = levels[i].act(_rows(latents[i], index), goal, deterministic)
-            else:
-                chosen = _take(random_actions[i], index)
-            actions[i] = _scatter(actions[i], index, chosen.to(actions[i].dtype))
+    def _act(
+        self, level: int, encoded: Encoded, index: th.Tensor | None, goal: th.Tensor | None, deterministic: bool
+    ) -> th.Tensor:
+        """The action of ``level`` for the envs ``index`` (all if None) with the subgoal ``goal`` in force.
 
-        new_state = HierarchyState(state.step + 1, tuple(latents), tuple(actions), tuple(histories))
-        return new_state, HierarchyStep(masks, prev_actions)
+        :param level: the level
+        :param encoded: what :meth:`_encode` returned
+        :param index: env rows, or None for all
+        :param goal: (m, S) subgoal from the level above, or None at the top
+        :param deterministic: the mode instead of a sample
+        :return: (m, A) action vectors
+        """
+        latents = encoded[0]
+        return self.levels[level].act(_rows(latents[level], index), goal, deterministic)
 
     def random_subgoals(self, n_envs: int) -> list[th.Tensor]:
         """Uniformly random subgoals of the levels i >= 1 (warm-up), from numpy's global generator.
@@ -504,11 +528,7 @@ class Hierarchy(nn.Module):
 
 
 def make_hierarchy(
-    observation_space: spaces.Space,
-    action_space: spaces.Space,
-    config: HierosConfig,
-    bf16: bool = False,
-    compile: bool = False,
+    observation_space: spaces.Space, action_space: spaces.Space, config: HierosConfig, **world_model_options: bool
 ) -> Hierarchy:
     """The hierarchy of ``config``: :class:`Hierarchy`, or with ``hierarchical_world_models=False`` (ablation 5.3.1)
     :class:`~sb3_hieros.agent.shared.SharedWorldModelHierarchy`.
@@ -516,11 +536,10 @@ def make_hierarchy(
     :param observation_space: the environment's observation space
     :param action_space: the environment's action space
     :param config: the resolved configuration
-    :param bf16: bfloat16 autocast opt-in of the world models
-    :param compile: ``torch.compile`` opt-in of the world models
+    :param world_model_options: ``bf16`` and ``compile`` opt-ins of the world models
     :return: the hierarchy
     """
-    from sb3_hieros.agent.shared import SharedWorldModelHierarchy
+    from sb3_hieros.agent.shared import SharedWorldModelHierarchy  # it subclasses Hierarchy
 
     cls = Hierarchy if config.hierarchical_world_models else SharedWorldModelHierarchy
-    return cls(observation_space, action_space, config, bf16=bf16, compile=compile)
+    return cls(observation_space, action_space, config, **world_model_options)

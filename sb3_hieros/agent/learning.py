@@ -9,19 +9,19 @@ ablation (:mod:`sb3_hieros.agent.shared`) use them.
 
 from __future__ import annotations
 
-from typing import Protocol
-
 import torch as th
+from gymnasium import spaces
 from torch import nn
 
 from sb3_hieros.agent.actor_critic import ActorCritic
 from sb3_hieros.agent.subgoal import SubgoalAutoencoder
 from sb3_hieros.config import HierosConfig
 from sb3_hieros.nn.guard import step_if_finite
+from sb3_hieros.spaces import subgoal_space
 
 __all__ = [
     "SUBGOAL_SUCCESS_THRESHOLD",
-    "ImaginationLearner",
+    "LevelLearner",
     "imagination_start_indices",
     "learn_from_imagination",
     "level_actor_critic",
@@ -57,7 +57,7 @@ def level_actor_critic(
         feat_dim,
         kind,
         classes,
-        groups,
+        action_groups=groups,
         hidden=ac.units,
         layers=ac.layers,
         reward_weights=weights,
@@ -106,19 +106,65 @@ def imagination_start_indices(n_states: int, fraction: float, device: th.device)
     return th.randperm(n_states, device=device)[:count]
 
 
-class ImaginationLearner(Protocol):
-    """What :func:`learn_from_imagination` needs of a level (a :class:`Subactor` or a shared-world-model level)."""
+class LevelLearner(nn.Module):
+    """What every level learns besides a world model (thesis 4.3): the subgoal autoencoder G^i on the level's h and the
+    actor-critic Pi^i, their optimisers, and what the actor sees of a received subgoal.
+
+    Subclasses (:class:`~sb3_hieros.agent.subactor.Subactor`, :class:`~sb3_hieros.agent.shared.SharedLevel`) set
+    ``config``, ``subgoal_input`` and ``decoded_subgoal_input`` and call :meth:`_build_learners`.
+    """
 
     config: HierosConfig
-    actor_critic: ActorCritic
+    subgoal_input: bool
+    decoded_subgoal_input: bool
     autoencoder: SubgoalAutoencoder
-    actor_optimizer: th.optim.Optimizer
-    critic_optimizer: th.optim.Optimizer
-    ae_optimizer: th.optim.Optimizer
+    actor_critic: ActorCritic
+
+    def _build_learners(self, h_dim: int, feat_dim: int, kind: str, classes: int, groups: int, gradient: str) -> None:
+        """The autoencoder on h, then the actor-critic (:func:`level_actor_critic`) and their optimisers.
+
+        :param h_dim: size of the h the autoencoder encodes
+        :param feat_dim: actor / critic input size
+        :param kind: ``"discrete"`` or ``"box"``
+        :param classes: classes per categorical (discrete) or action dims (box)
+        :param groups: number of categoricals
+        :param gradient: ``"reinforce"`` or ``"dynamics"``
+        """
+        sg = self.config.subgoal
+        self.autoencoder = SubgoalAutoencoder(h_dim, sg.n_cat, sg.n_classes, sg.units, sg.layers, sg.beta)
+        self.actor_critic = level_actor_critic(
+            feat_dim, kind, classes, groups, gradient, self.config, self.subgoal_input
+        )
+        self.actor_optimizer, self.critic_optimizer, self.ae_optimizer = level_optimizers(
+            self.actor_critic, self.autoencoder, self.config
+        )
+
+    @property
+    def reward_terms(self) -> tuple[str, ...]:
+        """Reward terms with a critic (weight > 0), in the order of eq. 4.3."""
+        return self.actor_critic.active_terms
+
+    def subgoal_space(self) -> spaces.MultiDiscrete:
+        """Space of the subgoals this level receives, i.e. the action space of the level above.
+
+        :return: ``MultiDiscrete([n_classes] * n_cat)``
+        """
+        return subgoal_space(self.config.subgoal)
+
+    def goal_features(self, subgoal: th.Tensor | None) -> th.Tensor | None:
+        """What the actor sees of the received subgoal: the one-hot code (thesis) or its decoding (ablation 5.3.8).
+
+        :param subgoal: (N, n_cat * n_classes) one-hot code, or None at the top level
+        :return: (N, S') or None
+        """
+        if subgoal is None or not self.decoded_subgoal_input:
+            return subgoal
+        with th.no_grad():
+            return self.autoencoder.decode(subgoal)
 
 
 def learn_from_imagination(
-    level: ImaginationLearner,
+    level: LevelLearner,
     feats: th.Tensor,
     actions: th.Tensor,
     rewards: dict[str, th.Tensor],

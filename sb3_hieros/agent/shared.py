@@ -31,28 +31,15 @@ import contextlib
 from collections.abc import Sequence
 from typing import Any
 
-import numpy as np
 import torch as th
 from gymnasium import spaces
 from torch import nn
 
 from sb3_hieros.agent.actor_critic import actor_input, actor_input_dim
-from sb3_hieros.agent.hierarchy import (
-    Hierarchy,
-    HierarchyState,
-    HierarchyStep,
-    _rows,
-    _scatter,
-    _take,
-)
-from sb3_hieros.agent.learning import (
-    imagination_start_indices,
-    learn_from_imagination,
-    level_actor_critic,
-    level_optimizers,
-)
+from sb3_hieros.agent.hierarchy import Encoded, Hierarchy, HierarchyState, Masks, _take
+from sb3_hieros.agent.learning import LevelLearner, imagination_start_indices, learn_from_imagination
 from sb3_hieros.agent.subactor import Subactor
-from sb3_hieros.agent.subgoal import SubgoalAutoencoder, max_cosine_subgoal_reward, novelty_reward
+from sb3_hieros.agent.subgoal import max_cosine_subgoal_reward, novelty_reward
 from sb3_hieros.agent.world_model import LatentState
 from sb3_hieros.config import HierosConfig
 from sb3_hieros.nn.metrics import metric_floats
@@ -62,7 +49,7 @@ from sb3_hieros.type_aliases import LevelUpdate, Observation, SequenceSamples
 __all__ = ["SharedLevel", "SharedWorldModelHierarchy", "start_windows"]
 
 
-class SharedLevel(nn.Module):
+class SharedLevel(LevelLearner):
     """Level i >= 1 of a hierarchy with one shared world model (ablation 5.3.1): actor-critic and subgoal
     autoencoder, no world model.
 
@@ -88,57 +75,26 @@ class SharedLevel(nn.Module):
         decoded_subgoal_input: bool = False,
     ) -> None:
         super().__init__()
-        ac, sg = config.actor_critic, config.subgoal
-        self.config = config
-        self.level = level
-        self.window = window
-        self.state_dim = state_dim
-        self.h_dim = h_dim
-        self.stoch_dim = stoch_dim
+        sg = config.subgoal
+        self.config, self.level, self.window = config, level, window
+        self.state_dim, self.h_dim, self.stoch_dim = state_dim, h_dim, stoch_dim
         self.subgoal_input = bool(subgoal_input)
         self.decoded_subgoal_input = bool(decoded_subgoal_input) and self.subgoal_input
         self.observation_space = stacked_state_space(state_dim, window)
         self.action_space = subgoal_space(sg)
         self.action_kind = "discrete"
-        self.action_groups = sg.n_cat
-        self.action_classes = sg.n_classes
-        self.action_dim = sg.n_cat * sg.n_classes
-        self.subgoal_dim = sg.n_cat * sg.n_classes
+        self.action_groups, self.action_classes = sg.n_cat, sg.n_classes
+        self.action_dim = self.subgoal_dim = sg.n_cat * sg.n_classes
         self.imag_gradient = "reinforce"  # subgoals are categorical
-        self.autoencoder = SubgoalAutoencoder(h_dim, sg.n_cat, sg.n_classes, sg.units, sg.layers, sg.beta)
         goal_feat = (h_dim if self.decoded_subgoal_input else self.subgoal_dim) if self.subgoal_input else 0
-        self.feat_dim = actor_input_dim(window * state_dim - stoch_dim, stoch_dim, goal_feat, ac.actor_extras)
-        self.actor_critic = level_actor_critic(
-            self.feat_dim, "discrete", sg.n_classes, sg.n_cat, "reinforce", config, self.subgoal_input
-        )
-        self.actor_optimizer, self.critic_optimizer, self.ae_optimizer = level_optimizers(
-            self.actor_critic, self.autoencoder, config
-        )
-
-    @property
-    def reward_terms(self) -> tuple[str, ...]:
-        """Reward terms with a critic (weight > 0), in the order of eq. 4.3."""
-        return self.actor_critic.active_terms
+        extras = config.actor_critic.actor_extras
+        self.feat_dim = actor_input_dim(window * state_dim - stoch_dim, stoch_dim, goal_feat, extras)
+        self._build_learners(h_dim, self.feat_dim, "discrete", sg.n_classes, sg.n_cat, "reinforce")
 
     @property
     def optimizers(self) -> dict[str, th.optim.Optimizer]:
         """The three optimisers by name: ``actor``, ``critic``, ``autoencoder``."""
         return {"actor": self.actor_optimizer, "critic": self.critic_optimizer, "autoencoder": self.ae_optimizer}
-
-    def subgoal_space(self) -> spaces.MultiDiscrete:
-        """Space of the subgoals this level receives (the action space of the level above)."""
-        return subgoal_space(self.config.subgoal)
-
-    def goal_features(self, subgoal: th.Tensor | None) -> th.Tensor | None:
-        """What the actor sees of the received subgoal: the code, or its decoding (ablation 5.3.8); None at the top.
-
-        :param subgoal: (N, n_cat * n_classes) one-hot code, or None at the top level
-        :return: (N, S') or None
-        """
-        if subgoal is None or not self.decoded_subgoal_input:
-            return subgoal
-        with th.no_grad():
-            return self.autoencoder.decode(subgoal)
 
     def features(
         self,
@@ -226,12 +182,11 @@ class SharedWorldModelHierarchy(Hierarchy):
     :param observation_space: the environment's observation space
     :param action_space: the environment's action space
     :param config: the resolved configuration (``hierarchical_world_models=False``)
-    :param bf16: bfloat16 autocast opt-in of the world model
-    :param compile: ``torch.compile`` opt-in of the world model
+    :param world_model_options: ``bf16`` and ``compile`` opt-ins of the world model
     """
 
     def _build_levels(
-        self, observation_space: spaces.Space, action_space: spaces.Space, bf16: bool, compile: bool
+        self, observation_space: spaces.Space, action_space: spaces.Space, options: dict[str, bool]
     ) -> list[nn.Module]:
         level0 = Subactor(
             observation_space,
@@ -240,8 +195,7 @@ class SharedWorldModelHierarchy(Hierarchy):
             level=0,
             subgoal_input=self.n_levels > 1,
             decoded_subgoal_input=self.config.decoded_subgoal_input,
-            bf16=bf16,
-            compile=compile,
+            **options,
         )
         levels: list[nn.Module] = [level0]
         for i in range(1, self.n_levels):
@@ -283,49 +237,30 @@ class SharedWorldModelHierarchy(Hierarchy):
     def _history_dim(self, level: int) -> int:
         return self.levels[0].latent_dim
 
-    @th.no_grad()
-    def step(
-        self,
-        state: HierarchyState,
-        observation: Observation,
-        is_first: th.Tensor | np.ndarray,
-        deterministic: bool = False,
-        random_actions: Sequence[th.Tensor] | None = None,
-    ) -> tuple[HierarchyState, HierarchyStep]:
-        """:meth:`Hierarchy.step` with one world model: level 0 encodes o_t, every level i >= 1 pushes level 0's world
-        state into its window of the last ``k**i`` of them and acts every ``k**i`` steps."""
-        n = state.n_envs
-        first_host = th.as_tensor(is_first, dtype=th.bool).reshape(n)
-        masks = self._update_masks(state.step, first_host)
-        device = state.actions[0].device
-        is_first = first_host.to(device)
-        levels: Any = self.levels
-        level0 = levels[0]
+    def _encode(
+        self, state: HierarchyState, observation: Observation, is_first: th.Tensor, masks: Masks, deterministic: bool
+    ) -> Encoded:
+        """Level 0 encodes o_t and every level i >= 1 pushes its world state into its window of the last ``k**i``.
+
+        :return: level 0's latent state, the windows, and level 0's reward, continue and prior entropy (the actor
+            extras of every level)
+        """
+        level0: Any = self.levels[0]
         latent = level0.observe_step(state.latents[0], observation, state.actions[0], is_first, deterministic)
         newest = level0.encoded_observation(latent).unsqueeze(1)  # (n, 1, D + G*K)
-        keep = (~is_first).to(newest.dtype).reshape(n, 1, 1)
+        keep = (~is_first).to(newest.dtype).reshape(state.n_envs, 1, 1)
         histories = tuple(th.cat([h[:, 1:] * keep, newest], 1) for h in state.histories)
         wm = level0.world_model
-        reward, cont, entropy = wm.reward(latent), wm.cont(latent), wm.prior_entropy(latent)
-        prev_actions = tuple(state.actions)
-        actions = list(state.actions)
-        for i in reversed(range(self.n_levels)):
-            if not bool(masks[i].any()):
-                continue
-            index = self._index(masks[i], device)
-            if random_actions is not None:
-                chosen = _take(random_actions[i], index)
-            else:
-                goal = None if i == self.n_levels - 1 else _take(actions[i + 1], index)
-                if i == 0:
-                    chosen = level0.act(_rows(latent, index), goal, deterministic)
-                else:
-                    window = _take(self.observation_window(histories[i - 1]), index)
-                    extras = (_take(x, index) for x in (reward, cont, entropy))
-                    chosen = levels[i].act(window, *extras, goal, deterministic)
-            actions[i] = _scatter(actions[i], index, chosen.to(actions[i].dtype))
-        new_state = HierarchyState(state.step + 1, (latent,), tuple(actions), histories)
-        return new_state, HierarchyStep(masks, prev_actions)
+        return (latent,), histories, (wm.reward(latent), wm.cont(latent), wm.prior_entropy(latent))
+
+    def _act(
+        self, level: int, encoded: Encoded, index: th.Tensor | None, goal: th.Tensor | None, deterministic: bool
+    ) -> th.Tensor:
+        if level == 0:
+            return super()._act(level, encoded, index, goal, deterministic)
+        _, histories, extras = encoded
+        window = _take(self.observation_window(histories[level - 1]), index)
+        return self.levels[level].act(window, *(_take(x, index) for x in extras), goal, deterministic)
 
     def train_step(self, batches: Sequence[SequenceSamples | None]) -> list[LevelUpdate | None]:
         """One training iteration of every level in level 0's imagination (module docstring).

@@ -27,17 +27,15 @@ from typing import Any, NamedTuple
 import torch as th
 import torch.nn.functional as F
 from gymnasium import spaces
-from torch import nn
 
 from sb3_hieros.agent.actor_critic import actor_input, actor_input_dim
 from sb3_hieros.agent.learning import (
     SUBGOAL_SUCCESS_THRESHOLD,
+    LevelLearner,
     imagination_start_indices,
     learn_from_imagination,
-    level_actor_critic,
-    level_optimizers,
 )
-from sb3_hieros.agent.subgoal import SubgoalAutoencoder, max_cosine_subgoal_reward, novelty_reward
+from sb3_hieros.agent.subgoal import max_cosine_subgoal_reward, novelty_reward
 from sb3_hieros.agent.world_model import (
     LatentState,
     WorldModel,
@@ -47,7 +45,7 @@ from sb3_hieros.agent.world_model import (
 )
 from sb3_hieros.config import HierosConfig
 from sb3_hieros.nn.metrics import metric_floats
-from sb3_hieros.spaces import action_layout, stacked_state_space, subgoal_space
+from sb3_hieros.spaces import action_layout, stacked_state_space
 from sb3_hieros.type_aliases import LevelUpdate, Observation, SequenceSamples
 
 __all__ = ["Imagination", "Replan", "Subactor", "current_action_alignment"]
@@ -99,7 +97,7 @@ def _count(params: Any) -> int:
     return sum(p.numel() for p in params)
 
 
-class Subactor(nn.Module):
+class Subactor(LevelLearner):
     """One HIEROS level i (thesis 4.3): world model W^i, actor-critic Pi^i and subgoal autoencoder G^i.
 
     :param observation_space: observations of this level: the env's for level 0, otherwise
@@ -149,22 +147,16 @@ class Subactor(nn.Module):
         )
         self.h_dim = self.world_model.deter_dim
         self.z_dim = self.world_model.stoch_dim
-        self.autoencoder = SubgoalAutoencoder(self.h_dim, sg.n_cat, sg.n_classes, sg.units, sg.layers, sg.beta)
         #: flat size of a received subgoal (n_cat * n_classes)
         self.subgoal_dim = sg.n_cat * sg.n_classes
         goal_feat = 0
         if self.subgoal_input:
             goal_feat = self.h_dim if self.decoded_subgoal_input else self.subgoal_dim
         self.feat_dim = actor_input_dim(self.h_dim, self.z_dim, goal_feat, ac.actor_extras)
-        self.actor_critic = level_actor_critic(
-            self.feat_dim, kind, classes, groups, self.imag_gradient, config, self.subgoal_input
-        )
+        self._build_learners(self.h_dim, self.feat_dim, kind, classes, groups, self.imag_gradient)
         self.wm_optimizer = world_model_optimizer(self.world_model)
         self.wm_scheduler: th.optim.lr_scheduler.LRScheduler | None = world_model_lr_scheduler(
             self.wm_optimizer, config.world_model.warmup
-        )
-        self.actor_optimizer, self.critic_optimizer, self.ae_optimizer = level_optimizers(
-            self.actor_critic, self.autoencoder, config
         )
 
     # ------------------------------------------------------------------------------------------------ spaces
@@ -173,18 +165,6 @@ class Subactor(nn.Module):
     def latent_dim(self) -> int:
         """Size D + G*K of one world state ``[h, z]`` (:meth:`encoded_observation`)."""
         return self.h_dim + self.z_dim
-
-    @property
-    def reward_terms(self) -> tuple[str, ...]:
-        """Reward terms with a critic (weight > 0), in the order of eq. 4.3."""
-        return self.actor_critic.active_terms
-
-    def subgoal_space(self) -> spaces.MultiDiscrete:
-        """Space of the subgoals this level receives, i.e. the action space of the level above.
-
-        :return: ``MultiDiscrete([n_classes] * n_cat)``
-        """
-        return subgoal_space(self.config.subgoal)
 
     def higher_level_observation_space(self, k: int) -> spaces.Box:
         """Observation space of the level above: k consecutive world states of this level, concatenated (thesis 4.3).
@@ -244,17 +224,6 @@ class Subactor(nn.Module):
         if state is None:
             state = wm.initial_state(int(prev_action.shape[0]))
         return wm._obs_step(state, wm.spec.as_dict(observation), prev_action, is_first, deterministic)
-
-    def goal_features(self, subgoal: th.Tensor | None) -> th.Tensor | None:
-        """What the actor sees of the subgoal: the one-hot code (thesis) or its decoding (ablation 5.3.8).
-
-        :param subgoal: (B, n_cat * n_classes) one-hot code, or None at the top level
-        :return: (B, S') or None
-        """
-        if subgoal is None or not self.decoded_subgoal_input:
-            return subgoal
-        with th.no_grad():
-            return self.autoencoder.decode(subgoal)
 
     def features(self, state: LatentState, goal_feat: th.Tensor | None) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         """Actor / critic input s_t of eq. 4.6 and the world model's reward and continue predictions at ``state``.

@@ -18,6 +18,9 @@ from torch import nn
 from sb3_hieros.nn.distributions import OneHotCategoricalST, categorical_kl
 from sb3_hieros.nn.networks import MLP
 
+#: Uniform mixture of the subgoal code distribution (DreamerV3's unimix).
+CODE_UNIMIX = 0.01
+
 
 class SubgoalAutoencoder(nn.Module):
     """G_psi = (encoder p_psi(g | h), decoder f_psi(g) ~ h) of eq. 4.1.
@@ -31,37 +34,20 @@ class SubgoalAutoencoder(nn.Module):
     :param hidden: MLP width of encoder and decoder
     :param layers: hidden layers of encoder and decoder
     :param beta: weight of the KL to the uniform prior (thesis: 0.5)
-    :param unimix: uniform mixture of the code distribution
-    :param symlog_inputs: symlog h before the encoder (the reconstruction target stays h)
-    :param norm: LayerNorm in the MLPs
-    :param act: activation class
     """
 
     def __init__(
-        self,
-        h_dim: int,
-        n_cat: int = 8,
-        n_classes: int = 8,
-        hidden: int = 256,
-        layers: int = 2,
-        beta: float = 0.5,
-        unimix: float = 0.01,
-        symlog_inputs: bool = False,
-        norm: bool = True,
-        act: type[nn.Module] = nn.SiLU,
+        self, h_dim: int, n_cat: int = 8, n_classes: int = 8, hidden: int = 256, layers: int = 2, beta: float = 0.5
     ) -> None:
         super().__init__()
         if h_dim < 1 or n_cat < 1 or n_classes < 2:
             raise ValueError(f"need h_dim >= 1, n_cat >= 1, n_classes >= 2, got {h_dim}, {n_cat}, {n_classes}")
         if beta < 0:
             raise ValueError(f"beta must be >= 0, got {beta}")
-        self.h_dim = h_dim
-        self.n_cat = n_cat
-        self.n_classes = n_classes
-        self.beta = beta
-        self.unimix = unimix
-        self.encoder = MLP(h_dim, n_cat * n_classes, hidden, layers, norm=norm, act=act, symlog_inputs=symlog_inputs)
-        self.decoder = MLP(n_cat * n_classes, h_dim, hidden, layers, norm=norm, act=act)
+        self.h_dim, self.n_cat, self.n_classes = h_dim, n_cat, n_classes
+        self.beta, self.unimix = beta, CODE_UNIMIX
+        self.encoder = MLP(h_dim, n_cat * n_classes, hidden, layers)
+        self.decoder = MLP(n_cat * n_classes, h_dim, hidden, layers)
 
     @property
     def subgoal_shape(self) -> tuple[int, int]:

@@ -387,7 +387,7 @@ class SequenceReplayBuffer(ReplayBuffer):
         is_first: np.ndarray,
         is_terminal: np.ndarray,
         subgoal: np.ndarray | None = None,
-        envs: np.ndarray | None = None,
+        envs: np.ndarray | Sequence[int] | None = None,
     ) -> None:
         """Store one step per env directly in the row convention (for HIEROS's higher levels).
 

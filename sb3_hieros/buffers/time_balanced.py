@@ -3,8 +3,9 @@ thesis 4.5), or one of its baselines."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
-import torch as th
 from gymnasium import spaces
 
 from sb3_hieros.buffers.sequence import SequenceReplayBuffer, _global_uniform
@@ -24,12 +25,6 @@ class ETBSReplayBuffer(SequenceReplayBuffer):
     :param buffer_size: max number of stored steps over all envs
     :param observation_space: observation space (Dict included)
     :param action_space: action space
-    :param device: torch device of the sampled tensors
-    :param n_envs: number of parallel environments (streams)
-    :param optimize_memory_usage: must be False
-    :param handle_timeout_termination: if True, a time-limit done is not terminal
-    :param batch_length: steps per chunk T
-    :param subgoal_shape: shape of the stored subgoal, or None
     :param temperature: tau of eq. 4.21 (thesis default 0.3); used by "etbs" and "reference"
     :param mode: "etbs" (thesis), "uniform", "reference" (the public code's capacity scaling, capacity being
         the valid starts of a full stream), "count" (O(n) count-based baseline,
@@ -39,7 +34,8 @@ class ETBSReplayBuffer(SequenceReplayBuffer):
     :param count_temperature: softmax temperature of the "count" and "meanfield" modes, in draws per chunk start
     :param draws_per_insert: "meanfield" only (required there): chunks drawn per step added to a stream, e.g.
         ``batch_size * gradient_steps / (train_freq * n_envs)`` for SB3's training loop
-    :param context_dim: floats of replay context per row (see :class:`SequenceReplayBuffer`), 0 for none
+    :param kwargs: the other keywords of :class:`SequenceReplayBuffer` (``device``, ``n_envs``, ``batch_length``,
+        ``subgoal_shape``, ``context_dim``, ...)
     """
 
     def __init__(
@@ -47,17 +43,11 @@ class ETBSReplayBuffer(SequenceReplayBuffer):
         buffer_size: int,
         observation_space: spaces.Space,
         action_space: spaces.Space,
-        device: th.device | str = "auto",
-        n_envs: int = 1,
-        optimize_memory_usage: bool = False,
-        handle_timeout_termination: bool = True,
-        batch_length: int = 64,
-        subgoal_shape: tuple[int, ...] | None = None,
         temperature: float = 0.3,
         mode: str = "etbs",
         count_temperature: float = 1.0,
         draws_per_insert: float | None = None,
-        context_dim: int = 0,
+        **kwargs: Any,
     ):
         if mode not in ETBS_BUFFER_MODES:
             raise ValueError(f"mode must be one of {ETBS_BUFFER_MODES}, got {mode!r}")
@@ -65,18 +55,7 @@ class ETBSReplayBuffer(SequenceReplayBuffer):
             raise ValueError(f"temperature must lie in [0, 1], got {temperature!r}")
         if mode == "meanfield" and draws_per_insert is None:
             raise ValueError("mode='meanfield' needs draws_per_insert (chunks drawn per step added to a stream)")
-        super().__init__(
-            buffer_size,
-            observation_space,
-            action_space,
-            device=device,
-            n_envs=n_envs,
-            optimize_memory_usage=optimize_memory_usage,
-            handle_timeout_termination=handle_timeout_termination,
-            batch_length=batch_length,
-            subgoal_shape=subgoal_shape,
-            context_dim=context_dim,
-        )
+        super().__init__(buffer_size, observation_space, action_space, **kwargs)
         self.temperature = float(temperature)
         self.mode = mode
         self.counter = (

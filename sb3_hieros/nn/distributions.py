@@ -218,8 +218,7 @@ class OneHotCategoricalST:
             raise ValueError(f"logits of shape {tuple(logits.shape)} have too few dims for event_ndims={event_ndims}")
         if event_ndims < 0:
             raise ValueError(f"event_ndims must be >= 0, got {event_ndims}")
-        self.unimix = unimix
-        self.event_ndims = event_ndims
+        self.unimix, self.event_ndims = unimix, event_ndims
         self._raw_logits = logits
         self.probs = unimix_probs(logits, unimix)
         self._logits: th.Tensor | None = None

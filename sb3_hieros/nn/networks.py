@@ -181,18 +181,9 @@ class ConvEncoder(nn.Module):
     :param in_shape: (C, H, W) of one image
     :param depth: channels of the first convolution
     :param min_res: stop halving once the larger spatial side is at most this
-    :param norm: use the channel LayerNorm (convolutions then have no bias)
-    :param act: activation class
     """
 
-    def __init__(
-        self,
-        in_shape: Sequence[int],
-        depth: int = 32,
-        min_res: int = 4,
-        norm: bool = True,
-        act: type[nn.Module] = nn.SiLU,
-    ) -> None:
+    def __init__(self, in_shape: Sequence[int], depth: int = 32, min_res: int = 4) -> None:
         super().__init__()
         self.in_shape = _check_image_shape("in_shape", in_shape)
         if depth < 1:
@@ -203,12 +194,9 @@ class ConvEncoder(nn.Module):
         in_ch = channels
         for i in range(len(sizes) - 1):
             out_ch = depth * 2**i
-            conv = nn.Conv2d(in_ch, out_ch, kernel_size=4, stride=2, padding=1, bias=not norm)
+            conv = nn.Conv2d(in_ch, out_ch, kernel_size=4, stride=2, padding=1, bias=False)  # the norm has a bias
             trunc_normal_init_(conv)
-            layers.append(conv)
-            if norm:
-                layers.append(ChannelLayerNorm(out_ch))
-            layers.append(act())
+            layers += [conv, ChannelLayerNorm(out_ch), nn.SiLU()]
             in_ch = out_ch
         layers.append(nn.Flatten())
         self.net = nn.Sequential(*layers)
@@ -238,19 +226,9 @@ class ConvDecoder(nn.Module):
     :param out_shape: (C, H, W) of the reconstructed image
     :param depth: channels of the encoder's first convolution (the decoder's last hidden map)
     :param min_res: as in :class:`ConvEncoder`
-    :param norm: use channel LayerNorm after hidden transposed convolutions
-    :param act: activation class
     """
 
-    def __init__(
-        self,
-        feat_dim: int,
-        out_shape: Sequence[int],
-        depth: int = 32,
-        min_res: int = 4,
-        norm: bool = True,
-        act: type[nn.Module] = nn.SiLU,
-    ) -> None:
+    def __init__(self, feat_dim: int, out_shape: Sequence[int], depth: int = 32, min_res: int = 4) -> None:
         super().__init__()
         self.out_shape = _check_image_shape("out_shape", out_shape)
         if feat_dim < 1 or depth < 1:
@@ -272,14 +250,10 @@ class ConvDecoder(nn.Module):
             (h_out, w_out), (h_in, w_in) = sizes[i], sizes[i + 1]
             padding = (h_out - 2 * h_in, w_out - 2 * w_in)  # 0 or 1: undo the encoder's floor division
             conv = nn.ConvTranspose2d(
-                in_ch, out_ch, kernel_size=4, stride=2, padding=1, output_padding=padding, bias=last or not norm
+                in_ch, out_ch, kernel_size=4, stride=2, padding=1, output_padding=padding, bias=last
             )
             trunc_normal_init_(conv)
-            layers.append(conv)
-            if not last:
-                if norm:
-                    layers.append(ChannelLayerNorm(out_ch))
-                layers.append(act())
+            layers += [conv] if last else [conv, ChannelLayerNorm(out_ch), nn.SiLU()]
         self.net = nn.Sequential(*layers)
 
     def forward(self, feat: th.Tensor) -> th.Tensor:

@@ -40,22 +40,17 @@ _KINDS: dict[str, type[WorldModel]] = {"s5": S5WorldModel, "rssm": RSSMWorldMode
 
 
 def make_world_model(
-    observation_space: spaces.Space,
-    action_dim: int,
-    config: WorldModelConfig,
-    bf16: bool = False,
-    compile: bool = False,
+    observation_space: spaces.Space, action_dim: int, config: WorldModelConfig, **options: bool
 ) -> WorldModel:
     """The world model selected by ``config.kind`` (``"s5"``: S5WM, ``"rssm"``: DreamerV3's RSSM).
 
     :param observation_space: observation space of the level
     :param action_dim: size of the action vector
     :param config: world-model hyperparameters
-    :param bf16: bfloat16 autocast opt-in
-    :param compile: ``torch.compile`` opt-in for the sequence model
+    :param options: ``bf16`` and ``compile`` opt-ins (see :class:`WorldModel`)
     :return: the world model
     """
-    return _KINDS[config.kind](observation_space, action_dim, config, bf16=bf16, compile=compile)
+    return _KINDS[config.kind](observation_space, action_dim, config, **options)
 
 
 def world_model_optimizer(model: WorldModel, config: WorldModelConfig | None = None) -> th.optim.AdamW:

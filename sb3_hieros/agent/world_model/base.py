@@ -48,11 +48,13 @@ from sb3_hieros.nn.metrics import metric_floats
 from sb3_hieros.nn.networks import MLP
 from sb3_hieros.type_aliases import SequenceSamples
 
-__all__ = ["REWARD_BINS", "WorldModel"]
+__all__ = ["REWARD_BINS", "ObsDict", "WorldModel"]
 
 #: Bins of the symlog two-hot reward head.
 REWARD_BINS = 255
 
+#: Observations of a world model by key (a non-dict space under the single key ``"obs"``).
+ObsDict = dict[str, th.Tensor]
 #: ``step(t, state)`` of :meth:`WorldModel.rollout`: the action a_t taken in s_t, (N, A).
 StepFn = Callable[[int, LatentState], th.Tensor | None]
 
@@ -71,8 +73,8 @@ def _grouped_kl(log_p: th.Tensor, log_q: th.Tensor, p: th.Tensor | None = None) 
 class WorldModel(nn.Module):
     """Common part of both world models: encoder, heads, loss (eq. 4.10-4.13), imagination and input checks.
 
-    Subclasses implement the sequence model: :meth:`observe`, :meth:`obs_step`, :meth:`img_step`,
-    :meth:`initial_state` and :meth:`no_weight_decay_parameters`.
+    Subclasses implement the sequence model: :meth:`_build_sequence_model`, :meth:`_observe`, :meth:`_obs_step`,
+    :meth:`_img_step`, :meth:`_initial_state` and :meth:`no_weight_decay_parameters`.
 
     :param observation_space: observation space of this level (Box image (C, H, W) uint8, Box vector, or Dict)
     :param action_dim: size of the action vector (one-hot size for Discrete actions and subgoals, Box dims)
@@ -113,6 +115,15 @@ class WorldModel(nn.Module):
             # convolution stacks: Inductor fuses the per-pixel LayerNorm and SiLU around the oneDNN convolutions
             for conv in [*self.encoder.convs.values(), *self.decoder.convs.values()]:
                 conv.forward = th.compile(conv.forward, dynamic=False)
+        self._build_sequence_model(config, compile)
+
+    def _build_sequence_model(self, config: WorldModelConfig, compile: bool) -> None:
+        """Build the sequence model and the prior and posterior layers (after the encoder, decoder and heads).
+
+        :param config: world-model hyperparameters
+        :param compile: ``torch.compile`` opt-in
+        """
+        raise NotImplementedError
 
     # ---------------------------------------------------------------- small helpers
 
@@ -289,12 +300,7 @@ class WorldModel(nn.Module):
         return self._observe(obs, actions, is_first, state, deterministic)
 
     def _observe(
-        self,
-        obs: dict[str, th.Tensor],
-        actions: th.Tensor,
-        is_first: th.Tensor,
-        state: LatentState | None,
-        deterministic: bool,
+        self, obs: ObsDict, actions: th.Tensor, is_first: th.Tensor, state: LatentState | None, deterministic: bool
     ) -> tuple[LatentState, th.Tensor]:
         """:meth:`observe` of checked inputs (``obs`` as a dict, ``actions`` the previous actions, ``is_first``
         bool)."""
@@ -322,12 +328,7 @@ class WorldModel(nn.Module):
         return self._obs_step(state, obs, action, is_first, deterministic)
 
     def _obs_step(
-        self,
-        state: LatentState,
-        obs: dict[str, th.Tensor],
-        action: th.Tensor,
-        is_first: th.Tensor,
-        deterministic: bool,
+        self, state: LatentState, obs: ObsDict, action: th.Tensor, is_first: th.Tensor, deterministic: bool
     ) -> LatentState:
         """:meth:`obs_step` of checked inputs (``state`` given, ``obs`` as a dict, ``action`` the previous action,
         ``is_first`` bool)."""

@@ -97,11 +97,7 @@ def stack_states(states: Sequence[LatentState], dim: int = 0) -> LatentState:
     :param dim: position of the new dim among the batch dims
     :return: stacked state
     """
-    if not states:
-        raise ValueError("stack_states needs at least one state")
-    if dim < 0:
-        raise ValueError(f"dim must be >= 0 (counted among the batch dims), got {dim}")
-    return LatentState(*(th.stack(fields, dim) for fields in zip(*states, strict=True)))
+    return _combine(th.stack, states, dim)
 
 
 def cat_states(states: Sequence[LatentState], dim: int = 0) -> LatentState:
@@ -111,8 +107,13 @@ def cat_states(states: Sequence[LatentState], dim: int = 0) -> LatentState:
     :param dim: batch dim to concatenate
     :return: concatenated state
     """
+    return _combine(th.cat, states, dim)
+
+
+def _combine(op: Callable[..., th.Tensor], states: Sequence[LatentState], dim: int) -> LatentState:
+    """``op`` (``torch.stack`` or ``torch.cat``) applied field by field along the batch dim ``dim``."""
     if not states:
-        raise ValueError("cat_states needs at least one state")
+        raise ValueError("need at least one state")
     if dim < 0:
         raise ValueError(f"dim must be >= 0 (counted among the batch dims), got {dim}")
-    return LatentState(*(th.cat(fields, dim) for fields in zip(*states, strict=True)))
+    return LatentState(*(op(fields, dim) for fields in zip(*states, strict=True)))

@@ -6,10 +6,9 @@ from collections.abc import Callable
 
 import torch as th
 import torch.nn.functional as F
-from gymnasium import spaces
 from torch import nn
 
-from sb3_hieros.agent.world_model.base import WorldModel
+from sb3_hieros.agent.world_model.base import ObsDict, WorldModel
 from sb3_hieros.agent.world_model.latent import LatentState
 from sb3_hieros.agent.world_model.layers import InputLayer, LayerNormGRUCell
 from sb3_hieros.config import WorldModelConfig
@@ -35,15 +34,7 @@ class RSSMWorldModel(WorldModel):
     kind = "rssm"
     _deter_is_seq = True
 
-    def __init__(
-        self,
-        observation_space: spaces.Space,
-        action_dim: int,
-        config: WorldModelConfig,
-        bf16: bool = False,
-        compile: bool = False,
-    ) -> None:
-        super().__init__(observation_space, action_dim, config, bf16, compile)
+    def _build_sequence_model(self, config: WorldModelConfig, compile: bool) -> None:
         c = config
         self.inp = InputLayer(self.stoch_dim, self.action_dim, c.hidden)
         self.gru = LayerNormGRUCell(c.hidden, self.deter_dim)
@@ -81,12 +72,7 @@ class RSSMWorldModel(WorldModel):
         return deter, post_raw
 
     def _observe(
-        self,
-        obs: dict[str, th.Tensor],
-        actions: th.Tensor,
-        is_first: th.Tensor,
-        state: LatentState | None,
-        deterministic: bool,
+        self, obs: ObsDict, actions: th.Tensor, is_first: th.Tensor, state: LatentState | None, deterministic: bool
     ) -> tuple[LatentState, th.Tensor]:
         batch, length = actions.shape[:2]
         state = self.initial_state(batch) if state is None else state
@@ -111,12 +97,7 @@ class RSSMWorldModel(WorldModel):
         return post, prior_logits
 
     def _obs_step(
-        self,
-        state: LatentState,
-        obs: dict[str, th.Tensor],
-        action: th.Tensor,
-        is_first: th.Tensor,
-        deterministic: bool,
+        self, state: LatentState, obs: ObsDict, action: th.Tensor, is_first: th.Tensor, deterministic: bool
     ) -> LatentState:
         batch = int(action.shape[0])
         keep = (~is_first).unsqueeze(-1).to(action.dtype)

@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable
 
 import torch as th
-from gymnasium import spaces
 from torch import nn
 
-from sb3_hieros.agent.world_model.base import WorldModel
+from sb3_hieros.agent.world_model.base import ObsDict, WorldModel
 from sb3_hieros.agent.world_model.latent import LatentState
 from sb3_hieros.agent.world_model.layers import InputLayer
 from sb3_hieros.config import WorldModelConfig
@@ -34,15 +32,7 @@ class S5WorldModel(WorldModel):
 
     kind = "s5"
 
-    def __init__(
-        self,
-        observation_space: spaces.Space,
-        action_dim: int,
-        config: WorldModelConfig,
-        bf16: bool = False,
-        compile: bool = False,
-    ) -> None:
-        super().__init__(observation_space, action_dim, config, bf16, compile)
+    def _build_sequence_model(self, config: WorldModelConfig, compile: bool) -> None:
         c = config
         self.inp = InputLayer(self.stoch_dim, self.action_dim, c.s5_model_dim)
         self.sequence_model = S5Stack(c.s5_layers, c.s5_model_dim, c.s5_state_dim, c.s5_hippo_blocks, c.dropout)
@@ -54,8 +44,6 @@ class S5WorldModel(WorldModel):
         if compile:
             # the S5 module's own opt-in: real-split parallel scan under torch.compile; the step form stays eager
             compile_s5(self.sequence_model)
-        self._seq_forward: Callable[..., tuple[th.Tensor, th.Tensor]] = self.sequence_model.forward
-        self._seq_step: Callable[..., tuple[th.Tensor, th.Tensor]] = self.sequence_model.step
 
     def reuse_step_weights(self) -> contextlib.AbstractContextManager:
         return self.sequence_model.reuse_step_weights()
@@ -90,12 +78,7 @@ class S5WorldModel(WorldModel):
         return symlog(self.deter_out(source).float())
 
     def _observe(
-        self,
-        obs: dict[str, th.Tensor],
-        actions: th.Tensor,
-        is_first: th.Tensor,
-        state: LatentState | None,
-        deterministic: bool,
+        self, obs: ObsDict, actions: th.Tensor, is_first: th.Tensor, state: LatentState | None, deterministic: bool
     ) -> tuple[LatentState, th.Tensor]:
         batch, length = actions.shape[:2]
         embed = self._embed(obs, (batch, length))  # (B, T, E)
@@ -107,7 +90,7 @@ class S5WorldModel(WorldModel):
         keep = (~is_first).unsqueeze(-1).to(stoch.dtype)  # (B, T, 1)
         with self._autocast():
             u = self.inp(prev_stoch * keep, actions * keep)  # (B, T, H)
-            out, seq = self._seq_forward(u.float(), is_first, None if state is None else state.seq)
+            out, seq = self.sequence_model._forward(u.float(), is_first, None if state is None else state.seq)
             deter = self._deterministic_state(seq, out)  # (B, T, D)
             prior_raw = self.prior_net(out)
         prior_logits = self._normalise(prior_raw)
@@ -123,18 +106,13 @@ class S5WorldModel(WorldModel):
             stoch, action = stoch * keep, action * keep
         with self._autocast():
             u = self.inp(stoch, action)
-            out, seq = self._seq_step(u.float(), state.seq, reset)
+            out, seq = self.sequence_model._step(u.float(), state.seq, reset)
             deter = self._deterministic_state(seq, out)
             prior_raw = self.prior_net(out)
         return deter, seq, prior_raw
 
     def _obs_step(
-        self,
-        state: LatentState,
-        obs: dict[str, th.Tensor],
-        action: th.Tensor,
-        is_first: th.Tensor,
-        deterministic: bool,
+        self, state: LatentState, obs: ObsDict, action: th.Tensor, is_first: th.Tensor, deterministic: bool
     ) -> LatentState:
         batch = int(action.shape[0])
         deter, seq, prior_raw = self._prior_step(state, action, is_first)
