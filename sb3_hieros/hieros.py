@@ -46,7 +46,7 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.save_util import json_to_data, load_from_zip_file, open_path
+from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
 from sb3_hieros.agent.hierarchy import HierarchyState
@@ -54,7 +54,8 @@ from sb3_hieros.buffers import SequenceReplayBuffer
 from sb3_hieros.buffers.levels import HigherLevelRows, SubgoalTransitions, make_level_buffers
 from sb3_hieros.config import HierosConfig, get_preset
 from sb3_hieros.policies import CnnPolicy, HierosPolicy, MlpPolicy, MultiInputPolicy
-from sb3_hieros.spaces import check_finite_observations
+from sb3_hieros.save_util import check_hieros_save
+from sb3_hieros.spaces import check_finite_observations, check_finite_step
 from sb3_hieros.type_aliases import Observation, SequenceSamples
 
 __all__ = ["HIEROS"]
@@ -76,45 +77,6 @@ def _refuse_keywords(kwargs: dict[str, Any]) -> None:
         )
     if kwargs:
         raise TypeError(f"HIEROS got unexpected keywords {sorted(kwargs)}")
-
-
-def _check_hieros_save(path: str | pathlib.Path | io.BufferedIOBase, custom_objects: dict[str, Any] | None) -> None:
-    """Raise ``ValueError`` unless ``path`` is a readable zip whose ``data`` entry names a :class:`HierosPolicy`.
-
-    Reads only the small ``data`` entry (no tensors); a file-like ``path`` is left at its position.
-
-    :param path: what :meth:`HIEROS.load` was given
-    :param custom_objects: as for ``load``
-    """
-    file = open_path(path, "r", verbose=0, suffix="zip")
-    start = file.tell() if file.seekable() else None
-    n_entries, data = 0, None
-    try:
-        with zipfile.ZipFile(file) as archive:
-            names = archive.namelist()
-            n_entries = len(names)
-            if "data" in names:
-                data = json_to_data(archive.read("data").decode(), custom_objects=custom_objects)
-    except (zipfile.BadZipFile, zlib.error, EOFError, UnicodeDecodeError, ValueError, KeyError) as err:
-        raise ValueError(
-            f"{path} is not a readable HIEROS save (truncated or corrupted?): {type(err).__name__}: {err}"
-        ) from None
-    finally:
-        if isinstance(path, str | pathlib.Path):
-            file.close()
-        elif start is not None:
-            file.seek(start)
-    if data is None:
-        raise ValueError(
-            f"{path} is not a HIEROS save: none of its {n_entries} zip entries is 'data'; the file may be truncated"
-        )
-    policy_class = data.get("policy_class")
-    if not (isinstance(policy_class, type) and issubclass(policy_class, HierosPolicy)):
-        name = getattr(policy_class, "__qualname__", repr(policy_class))
-        raise ValueError(
-            f"{path} was not saved by HIEROS: its policy class is {name}, expected a HierosPolicy; load it with the "
-            "algorithm that saved it"
-        )
 
 
 class HIEROS(OffPolicyAlgorithm):
@@ -323,6 +285,8 @@ class HIEROS(OffPolicyAlgorithm):
         fresh = reset_num_timesteps or self._last_obs is None or self._hier is None
         fresh = fresh or (self._hier is not None and self._hier.n_envs != self.n_envs)
         result = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        # the observations of later steps are checked as they arrive (_store_transition)
+        check_finite_observations(self._last_obs, "reset observation")  # type: ignore[arg-type]
         if fresh:
             self._reset_hierarchy()
         return result
@@ -355,7 +319,6 @@ class HIEROS(OffPolicyAlgorithm):
         if action_noise is not None:
             raise ValueError("HIEROS explores with its stochastic actors; action_noise must be None")
         assert self._hier is not None and self._rows is not None
-        check_finite_observations(self._last_obs)  # type: ignore[arg-type]
         policy, hierarchy = self.policy, self.policy.hierarchy
         obs, _ = policy.obs_to_tensor(self._last_obs)  # type: ignore[arg-type]
         is_first = np.asarray(self._last_episode_starts, dtype=bool)
@@ -399,22 +362,7 @@ class HIEROS(OffPolicyAlgorithm):
         infos: list[dict[str, Any]],
     ) -> None:
         """Level 0 through SB3 (with the subgoal in force), then the higher levels' reward sums and terminal rows."""
-        check_finite_observations(new_obs, "new observation")
-        bad = np.flatnonzero(~np.isfinite(np.asarray(reward, dtype=np.float64).reshape(-1)))
-        if bad.size:
-            raise ValueError(
-                f"reward of env {', '.join(str(j) for j in bad)} is not finite "
-                f"({np.asarray(reward).reshape(-1)[bad].tolist()}); fix the environment or wrap the VecEnv in "
-                "VecCheckNan(env, raise_exception=True)"
-            )
-        for j in np.flatnonzero(np.asarray(dones, dtype=bool).reshape(-1)):
-            final = infos[j].get("terminal_observation")
-            if final is not None:
-                check_finite_observations(
-                    {k: v[None] for k, v in final.items()} if isinstance(final, dict) else np.asarray(final)[None],
-                    "terminal observation",
-                    envs=[int(j)],
-                )
+        check_finite_step(new_obs, reward, dones, infos)
         zero_terminal_reward = self.config is not None and self.config.reference.terminal_reward == "zeroed"
         target: Any = replay_buffer
         if self._subgoal0 is not None or zero_terminal_reward:
@@ -579,7 +527,7 @@ class HIEROS(OffPolicyAlgorithm):
         :param kwargs: attributes to set on the loaded model (e.g. ``learning_starts=0``)
         :return: the model
         """
-        _check_hieros_save(path, custom_objects)
+        check_hieros_save(path, custom_objects)
         try:
             return super().load(  # type: ignore[return-value]
                 path,

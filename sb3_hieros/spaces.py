@@ -3,7 +3,7 @@
 :func:`check_spaces` is the one check of the environment's spaces (called by
 :class:`~sb3_hieros.policies.HierosPolicy`, which every ``HIEROS`` construction and ``load`` goes through); the code
 below it trusts the spaces. :func:`check_finite_observations` is the per-step check of observation values at the
-public boundary (``predict`` and the environment steps of ``learn``).
+public boundary (``predict`` and the environment steps of ``learn``, :func:`check_finite_step`).
 
 Inside the hierarchy, level 0 acts in the environment's action space and observes its observations; a level i > 0
 acts in :func:`subgoal_space` (the subgoals of level i-1) and observes :func:`stacked_state_space` (the last world
@@ -25,6 +25,7 @@ __all__ = [
     "action_layout",
     "check_action_space",
     "check_finite_observations",
+    "check_finite_step",
     "check_observation_space",
     "check_spaces",
     "stacked_state_space",
@@ -130,6 +131,32 @@ def check_finite_observations(
                 "stable_baselines3.common.vec_env.VecCheckNan(env, raise_exception=True) to stop at the step that "
                 "produced it"
             )
+
+
+def check_finite_step(
+    new_obs: np.ndarray | Mapping[str, np.ndarray], reward: np.ndarray, dones: np.ndarray, infos: Sequence[dict]
+) -> None:
+    """Raise ``ValueError`` if one vec-env step brought a NaN or inf: in the new observations, the rewards or the
+    terminal observations of the envs whose episode ended, naming the env (and the Dict key).
+
+    :param new_obs: (n, ...) observations after the step
+    :param reward: (n,) rewards
+    :param dones: (n,) episode ends
+    :param infos: the step's info dicts (``"terminal_observation"`` where an episode ended)
+    """
+    check_finite_observations(new_obs, "new observation")
+    bad = np.flatnonzero(~np.isfinite(np.asarray(reward, dtype=np.float64).reshape(-1)))
+    if bad.size:
+        raise ValueError(
+            f"reward of env {', '.join(str(j) for j in bad)} is not finite "
+            f"({np.asarray(reward).reshape(-1)[bad].tolist()}); fix the environment or wrap the VecEnv in "
+            "VecCheckNan(env, raise_exception=True)"
+        )
+    for j in np.flatnonzero(np.asarray(dones, dtype=bool).reshape(-1)):
+        final = infos[j].get("terminal_observation")
+        if final is not None:
+            batch = {k: v[None] for k, v in final.items()} if isinstance(final, dict) else np.asarray(final)[None]
+            check_finite_observations(batch, "terminal observation", envs=[int(j)])
 
 
 def subgoal_space(config: SubgoalConfig) -> spaces.MultiDiscrete:

@@ -25,6 +25,7 @@ import torch as th
 from torch import nn
 from torch.func import functional_call
 
+from sb3_hieros.agent.returns import ReturnNormalizer, cumulative_discount, lambda_returns
 from sb3_hieros.nn.distributions import BoundedNormal, OneHotCategoricalST, TwoHotSymlog, symlog, symlog_bins
 from sb3_hieros.nn.networks import MLP
 
@@ -38,135 +39,6 @@ ACTION_MIN_STD, ACTION_MAX_STD = 0.1, 1.0
 VALUE_BINS = 255
 #: Names of the optional scalar actor inputs of eq. 4.6.
 EXTRA_INPUTS = ("reward", "cont", "entropy")
-
-
-# --------------------------------------------------------------------------------------------------------------------
-# Returns and their normalisation
-# --------------------------------------------------------------------------------------------------------------------
-
-
-def lambda_returns(
-    rewards: th.Tensor,
-    values: th.Tensor,
-    continues: th.Tensor,
-    bootstrap: th.Tensor,
-    discount: float = 0.997,
-    lambda_: float = 0.95,
-) -> th.Tensor:
-    r"""TD(lambda) returns of an imagined trajectory s_0 .. s_H, time-major (DreamerV3 definition).
-
-    .. math::
-        R_t = r_{t+1} + \gamma c_{t+1} \left[(1 - \lambda) v(s_{t+1}) + \lambda R_{t+1}\right], \qquad R_H = v(s_H)
-
-    for t = 0 .. H-1. The reward and continue flag of a step are those of the state it *arrives at* (s_{t+1}); the
-    reference implementation uses r(s_t), c(s_t) instead (research note 5.3 / 8.6), which is off by one.
-
-    Inputs are aligned with the returns, so the advantage is simply ``returns - values``:
-
-    :param rewards: (H, *B) ``rewards[t]`` = r_{t+1}, the reward predicted for s_{t+1}
-    :param values: (H, *B) ``values[t]`` = v(s_t); ``values[1:]`` enter the recursion, ``values[0]`` is only the
-        baseline of R_0
-    :param continues: (H, *B) ``continues[t]`` = c_{t+1} in [0, 1], the probability that the episode goes on at s_{t+1}
-    :param bootstrap: (*B) v(s_H), the value of the last imagined state
-    :param discount: gamma
-    :param lambda_: lambda in [0, 1]; 0 gives one-step TD targets, 1 Monte-Carlo returns bootstrapped at s_H
-    :return: (H, *B) returns R_0 .. R_{H-1}
-    """
-    if rewards.dim() < 1 or rewards.shape[0] < 1:
-        raise ValueError(f"rewards must have shape (H, *B) with H >= 1, got {tuple(rewards.shape)}")
-    if values.shape != rewards.shape or continues.shape != rewards.shape:
-        raise ValueError(
-            f"rewards {tuple(rewards.shape)}, values {tuple(values.shape)} and continues {tuple(continues.shape)} "
-            "must have the same (H, *B) shape"
-        )
-    if bootstrap.shape != rewards.shape[1:]:
-        raise ValueError(f"bootstrap must have shape {tuple(rewards.shape[1:])}, got {tuple(bootstrap.shape)}")
-    if not 0.0 <= lambda_ <= 1.0:
-        raise ValueError(f"lambda_ must be in [0, 1], got {lambda_}")
-    disc = discount * continues
-    next_values = th.cat([values[1:], bootstrap.unsqueeze(0)], 0)
-    inputs = rewards + disc * (1.0 - lambda_) * next_values
-    last = bootstrap
-    returns = []
-    for t in reversed(range(rewards.shape[0])):
-        last = inputs[t] + disc[t] * lambda_ * last
-        returns.append(last)
-    return th.stack(returns[::-1], 0)
-
-
-def cumulative_discount(continues: th.Tensor, discount: float = 0.997) -> th.Tensor:
-    r"""Loss weights of the imagined states, ``w_t = c_0 \prod_{j=1}^{t} \gamma c_j`` (DreamerV3).
-
-    A state after a predicted episode end gets (almost) zero weight; the start state s_0 has weight c_0.
-
-    :param continues: (H+1, *B) continue probabilities of s_0 .. s_H
-    :param discount: gamma
-    :return: (H+1, *B) detached weights
-    """
-    if discount <= 0.0:
-        raise ValueError(f"discount must be > 0, got {discount}")
-    continues = continues.detach()
-    return th.cumprod(discount * continues, 0) / discount
-
-
-class ReturnNormalizer(nn.Module):
-    """Return scale S = EMA(P_high) - EMA(P_low) of the lambda-returns, floored at ``min_scale`` (DreamerV3).
-
-    The percentiles of each batch of returns are tracked with an exponential moving average (decay 0.99, started
-    from 0 without bias correction, as in DreamerV3). Advantages are divided by ``max(min_scale, S)``, which shrinks
-    large returns but never amplifies small ones. The EMAs are persistent float buffers, saved with the model.
-
-    :param decay: EMA decay in [0, 1)
-    :param percentiles: (low, high) percentiles in [0, 100]
-    :param min_scale: floor of the scale (DreamerV3: 1)
-    """
-
-    low: th.Tensor
-    high: th.Tensor
-
-    def __init__(
-        self, decay: float = 0.99, percentiles: tuple[float, float] = (5.0, 95.0), min_scale: float = 1.0
-    ) -> None:
-        super().__init__()
-        if not 0.0 <= decay < 1.0:
-            raise ValueError(f"decay must be in [0, 1), got {decay}")
-        if not 0.0 <= percentiles[0] < percentiles[1] <= 100.0:
-            raise ValueError(f"percentiles must satisfy 0 <= low < high <= 100, got {percentiles}")
-        if min_scale <= 0.0:
-            raise ValueError(f"min_scale must be > 0, got {min_scale}")
-        self.decay = decay
-        self.percentiles = (float(percentiles[0]), float(percentiles[1]))
-        self.min_scale = min_scale
-        self.register_buffer("low", th.zeros(()))
-        self.register_buffer("high", th.zeros(()))
-
-    @th.no_grad()
-    def update(self, returns: th.Tensor) -> None:
-        """Move the percentile EMAs towards the percentiles of ``returns`` (any shape, non-empty).
-
-        :param returns: a batch of returns
-        """
-        if returns.numel() == 0:
-            raise ValueError("returns must be non-empty")
-        q = th.tensor([self.percentiles[0] / 100.0, self.percentiles[1] / 100.0], device=returns.device)
-        low, high = th.quantile(returns.detach().reshape(-1).float(), q)
-        self.low.mul_(self.decay).add_((1.0 - self.decay) * low.to(self.low.dtype))
-        self.high.mul_(self.decay).add_((1.0 - self.decay) * high.to(self.high.dtype))
-
-    def scale(self) -> th.Tensor:
-        """0-d ``max(min_scale, high - low)`` (detached)."""
-        return th.clamp(self.high - self.low, min=self.min_scale).detach()
-
-    def forward(self, returns: th.Tensor, update: bool = True) -> tuple[th.Tensor, th.Tensor]:
-        """Optionally update with ``returns``, then return the current statistics.
-
-        :param returns: a batch of returns
-        :param update: update the EMAs first
-        :return: (offset = EMA of the low percentile, scale = max(min_scale, S)), both detached 0-d tensors
-        """
-        if update:
-            self.update(returns)
-        return self.low.detach().clone(), self.scale()
 
 
 # --------------------------------------------------------------------------------------------------------------------

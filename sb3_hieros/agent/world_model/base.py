@@ -34,6 +34,7 @@ import torch as th
 from gymnasium import spaces
 from torch import nn
 
+from sb3_hieros.agent.world_model.checks import check_actions, check_is_first, check_state
 from sb3_hieros.agent.world_model.latent import LatentState, stack_states
 from sb3_hieros.agent.world_model.observations import (
     SINGLE_KEY,
@@ -161,58 +162,27 @@ class WorldModel(nn.Module):
     def _uniform_logits(self, batch_size: int) -> th.Tensor:
         return th.full((batch_size, self.groups, self.classes), -math.log(self.classes), device=self.device)
 
-    # ---------------------------------------------------------------- input checks
-
-    def _check_is_first(self, is_first: Any, shape: tuple[int, ...], name: str = "is_first") -> th.Tensor:
-        if not isinstance(is_first, th.Tensor):
-            raise ValueError(f"{name} must be a torch.Tensor of shape {shape}, got {type(is_first).__name__}")
-        if tuple(is_first.shape) != shape:
-            raise ValueError(f"{name} has shape {tuple(is_first.shape)}, expected {shape}")
-        if is_first.dtype == th.bool:
-            return is_first
-        if is_first.is_complex():
-            raise ValueError(f"{name} must be bool or real, got dtype {is_first.dtype}")
-        return is_first != 0
-
-    def _check_actions(self, actions: Any, ndim: int, name: str) -> th.Tensor:
-        layout = "(B, T, A)" if ndim == 3 else "(N, A)"
-        if not isinstance(actions, th.Tensor):
-            raise ValueError(f"{name} must be a torch.Tensor of shape {layout}, got {type(actions).__name__}")
-        if actions.dim() != ndim or actions.shape[-1] != self.action_dim:
-            raise ValueError(
-                f"{name} must have shape {layout} with A={self.action_dim}, got shape {tuple(actions.shape)}"
-            )
-        if not actions.is_floating_point():
-            raise ValueError(f"{name} must be a float tensor (one-hot for discrete actions), got dtype {actions.dtype}")
-        return actions.float()
+    # ---------------------------------------------------------------- input checks of the public methods
 
     def _check_state(self, state: Any, lead: tuple[int, ...], name: str = "state") -> LatentState:
-        if not isinstance(state, LatentState):
-            raise ValueError(f"{name} must be a LatentState, got {type(state).__name__}")
-        if tuple(state.batch_shape) != lead:
-            raise ValueError(f"{name} has batch shape {tuple(state.batch_shape)}, expected {lead}")
-        if state.stoch.shape[-1] != self.stoch_dim or state.deter.shape[-1] != self.deter_dim:
-            raise ValueError(
-                f"{name} has stoch/deter sizes {state.stoch.shape[-1]}/{state.deter.shape[-1]}, expected "
-                f"{self.stoch_dim}/{self.deter_dim}"
-            )
-        return state
+        return check_state(state, lead, self.stoch_dim, self.deter_dim, name)
+
+    def _check_actions(self, actions: Any, ndim: int, name: str) -> th.Tensor:
+        return check_actions(actions, self.action_dim, ndim, name)
 
     def _check_sequence(
         self, observations: Any, prev_actions: Any, is_first: Any
-    ) -> tuple[dict[str, th.Tensor], th.Tensor, th.Tensor, tuple[int, int]]:
+    ) -> tuple[ObsDict, th.Tensor, th.Tensor, tuple[int, int]]:
         actions = self._check_actions(prev_actions, 3, "prev_actions")
         lead = (int(actions.shape[0]), int(actions.shape[1]))
-        first = self._check_is_first(is_first, lead)
-        return self.spec.check(observations, lead), actions, first, lead
+        return self.spec.check(observations, lead), actions, check_is_first(is_first, lead), lead
 
     def _check_step(
         self, observation: Any, prev_action: Any, is_first: Any
-    ) -> tuple[dict[str, th.Tensor], th.Tensor, th.Tensor, int]:
+    ) -> tuple[ObsDict, th.Tensor, th.Tensor, int]:
         action = self._check_actions(prev_action, 2, "prev_action")
         batch = int(action.shape[0])
-        first = self._check_is_first(is_first, (batch,))
-        return self.spec.check(observation, (batch,), "observation"), action, first, batch
+        return self.spec.check(observation, (batch,), "observation"), action, check_is_first(is_first, (batch,)), batch
 
     def _embed(self, obs: dict[str, th.Tensor], lead: tuple[int, ...]) -> th.Tensor:
         with self._autocast():
