@@ -1,4 +1,4 @@
-"""Shared timing protocol for the benchmarks (research note perf_anchors.md, section 5.1).
+"""Shared timing protocol for the benchmarks.
 
 Every variant of one table runs in the same process, interleaved round-robin after warm-ups, and the table
 reports min and median wall time. Compare ratios, never absolute times across machines.

@@ -8,7 +8,7 @@ Two counting conventions are printed:
 
 * ``real``: every real number that is trained or stored as a parameter (complex S5 parameters as two reals, slow
   critics included).
-* ``complex once``: the reference implementation's own counter (research note hieros_reference.md 9.1), which counts a
+* ``complex once``: the reference implementation's own counter, which counts a
   complex parameter as one: our S5 layers store ``Lambda`` as (log(-Re), Im) and ``C`` as (real, imaginary) pairs, so
   P + H*P per S5 layer is subtracted (``B`` is stored as real pairs in both implementations and counted as two).
   Slow critics are included, as in the reference's count.

@@ -3,11 +3,11 @@
 ``python -m benchmarks.speed s5`` times forward+backward of the resettable S5 layer (thesis 4.4.2) against
 recurrent baselines, and its scan against the same scan differentiated by autograd (instead of its hand-written
 backward) and against the scan style of the public HIEROS reference implementation, following the
-protocol of research note perf_anchors.md section 5.1 (``benchmarks/_timing.py``): all variants of one
+timing protocol of ``benchmarks/_timing.py``: all variants of one
 sequence length run interleaved round-robin in one process after warm-ups; min and median are reported.
 The last lines print each speed ratio (baseline median / ours median) as ``name: value``.
 
-``python -m benchmarks.speed agent`` measures whole-agent training speed (issue #5): environment steps per second
+``python -m benchmarks.speed agent`` measures whole-agent training speed: environment steps per second
 of ``HIEROS.learn`` on ALE Pong 64x64 (``benchmarks/suites.py``) with the small preset, which includes acting and
 the updates of every level at the preset's train ratio. Two builds with the same seed, S5WM (default) and RSSM
 (``world_model.kind="rssm"``), are first filled with ``learning_starts`` random steps (untimed), then timed in
@@ -39,7 +39,7 @@ Elements = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
 
 def _reference_style_combine(earlier: Elements, later: Elements) -> Elements:
-    """Resettable S5 combine as the reference implementation does it (research note hieros_reference.md 3.3).
+    """Resettable S5 combine as the reference implementation does it (three ``torch.where`` per combine).
 
     Elements are (transition A, input Bu, reset flag d). If the later segment contains a reset, it is returned
     unchanged; otherwise the usual (A_j A_i, A_j b_i + b_j) with the earlier flag. Three ``torch.where``.

@@ -36,7 +36,7 @@ class Ablation:
     """One ablation: a named change of the configuration.
 
     :param name: the name used by ``benchmarks/ablations.py --ablation``
-    :param section: thesis section (``"5.3.1"`` ... ``"5.3.12"``) or ``"reference"`` (research note 8)
+    :param section: thesis section (``"5.3.1"`` ... ``"5.3.12"``) or ``"reference"`` (a behaviour of the public reference code)
     :param description: what changes, in a few words
     :param changes: the ``config_overrides`` of the ablation given the preset's configuration (some depend on it,
         e.g. the smaller S5WM halves the preset's ``s5_layers``)
@@ -121,19 +121,19 @@ _LIST = [
     Ablation(
         "reference_actions",
         "reference",
-        "world model trained on (z_{t-1}, a_t) as the reference code (note 8.1)",
+        "world model trained on (z_{t-1}, a_t) as the reference code",
         _fixed({"reference": {"action_alignment": "current"}}),
     ),
     Ablation(
         "reference_advantage",
         "reference",
-        "unnormalised REINFORCE advantages as the reference code (note 8.3)",
+        "unnormalised REINFORCE advantages as the reference code",
         _fixed({"reference": {"reinforce_advantage": "raw"}}),
     ),
     Ablation(
         "reference_terminal_reward",
         "reference",
-        "the reward of the final step stored as 0 as the reference code (note 8.4)",
+        "the reward of the final step stored as 0 as the reference code",
         _fixed({"reference": {"terminal_reward": "zeroed"}}),
     ),
     Ablation(

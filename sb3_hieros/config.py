@@ -1,7 +1,7 @@
 """Hyperparameters of HIEROS as dataclasses, with the presets ``"paper"`` and ``"small"``.
 
 ``"paper"`` is thesis section 4.6.3 (Mattes 2023), completed where the table is silent with the values of the
-paper-time runs of the public code (research note ``hieros_reference.md`` sections 2 and 9). ``"small"`` keeps
+paper-time runs of the public reference code. ``"small"`` keeps
 every code path and shrinks the widths so that a CPU learns CartPole in minutes.
 
 Every value not given explicitly to :class:`~sb3_hieros.HIEROS` comes from the chosen preset.
@@ -226,21 +226,20 @@ class SubgoalConfig:
 class ReferenceCompatConfig:
     """Switches that reproduce behaviours of the public reference code which this package corrects by default.
 
-    Research note ``hieros_reference.md`` sections 5 and 8 describe them; the defaults are the corrected behaviours.
-    Set all three with ``config_overrides={"reference": REFERENCE_BEHAVIOUR}`` (see :data:`REFERENCE_BEHAVIOUR`).
+    The defaults are the corrected behaviours (``docs/design.md`` lists the differences). Set all three with ``config_overrides={"reference": REFERENCE_BEHAVIOUR}`` (see :data:`REFERENCE_BEHAVIOUR`).
 
     :param action_alignment: ``"previous"`` (default): the world model's sequence model at row t consumes
         ``(z_{t-1}, a_{t-1})`` in training, acting and imagination alike. ``"current"``: in world-model training
-        row t consumes ``(z_{t-1}, a_t)``, the action chosen *after* seeing o_t (note 8.1: the reference's
+        row t consumes ``(z_{t-1}, a_t)``, the action chosen *after* seeing o_t (the reference's
         ``observe`` pairs z_{t-1} with a_t while acting and imagination use a_{t-1}; a_t is zeroed where
         ``is_first``). The last row of a chunk, whose a_t the chunk does not hold, gets a zero action.
     :param reinforce_advantage: ``"normalized"`` (default): REINFORCE uses the weighted sum of the per-term
         advantages, each divided by its return scale, as dynamics backpropagation does (DreamerV3). ``"raw"``:
         REINFORCE uses the reward-weight-weighted *average* of the unnormalised advantages
-        ``sum_k w_k (R^k - v^k) / sum_k w_k`` (note 5.6 / 8.3); dynamics backpropagation is unchanged.
+        ``sum_k w_k (R^k - v^k) / sum_k w_k``; dynamics backpropagation is unchanged.
     :param terminal_reward: ``"kept"`` (default): the reward of the step that ends an episode is stored. ``"zeroed"``:
         it is stored as 0 at level 0, and the terminal rows of the higher levels store a reward of 0 (the reference
-        clears the pending reward sum before writing them, note 8.4). The reference's wiping of *every* env's pending
+        clears the pending reward sum before writing them). The reference's wiping of *every* env's pending
         sums at any env's reset is not reproduced.
     """
 
@@ -431,17 +430,12 @@ def paper_config() -> HierosConfig:
 def small_config() -> HierosConfig:
     """A CPU preset: same code paths, 2 S5 blocks, narrower widths, a lower train ratio.
 
-    Tuned for learning speed per CPU second on CartPole-v1 (``python -m benchmarks.sample_efficiency --algos hieros
-    --seeds 0 1 2 --milestones 5000 10000 --hieros-kwargs '{"config_overrides": ...}'``, 3 seeds, mean return at 10k
-    steps). Small models tolerate a larger world-model learning rate (1e-3); 16-step chunks halve the cost of an
-    update, and imagination starts from half of the posterior states of a batch (``imag_start_fraction``). The
-    actor-critic departs from the thesis values: no novelty term (its critic's noise slowed learning: 365.5 without
-    it against 332.5 with it), discount 0.99 with critics at 1e-3 and a faster slow-critic EMA (0.1), which let the
-    critics keep up with a policy that improves within a few thousand steps (394.2 at 10k). The actor keeps 1e-4
-    (3e-5: 291.9; 3e-4: 158.3 over 2 seeds). Returns fell back after a peak on some seeds: the cart drifted off the
-    track because training saw at most 16 steps of history and acting whole episodes. The replay context
-    (``replay_context=True``) closes that gap: 465.8 at 10k against 317.5 without it (same seeds, one AMD EPYC CPU),
-    at about 2 KB of replay per stored step.
+    Chosen for learning speed per CPU second on CartPole-v1 (``benchmarks/sample_efficiency.py``; the README has the
+    comparisons): a larger world-model learning rate (1e-3) and 16-step chunks, imagination from half of the posterior
+    states of a batch (``imag_start_fraction``), and an actor-critic that departs from the thesis values (no novelty
+    term, discount 0.99, critics at 1e-3 with a slow-critic EMA of 0.1, actor at 1e-4), so that the critics keep up
+    with a policy that improves within a few thousand steps. The replay context (``replay_context=True``, about 2 KB of
+    replay per stored step) lets training see states with as much history as acting does.
     """
     return HierosConfig(
         world_model=WorldModelConfig(

@@ -108,7 +108,7 @@ def test_deciles_match_closed_form(temperature):
 
 
 def test_closed_form_at_temperature_one_favours_the_newest_decile():
-    # research note hieros_reference.md 4.3: P(index >= 0.9 N) = 0.412 at tau = 1 with N-scaling
+    # the reference's N-scaling gives P(index >= 0.9 N) = 0.412 at tau = 1
     assert analytic_decile_probabilities(10_000, 1.0)[-1] == pytest.approx(0.412, abs=0.01)
 
 

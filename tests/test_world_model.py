@@ -164,7 +164,7 @@ def test_imagine_shapes_and_no_inplace(kind):
     assert entropy.shape == (horizon + 1, n)
     assert th.all(entropy >= 0)
     assert_states_close(states.select(0)._replace(seq=before.seq), before, atol=0.0)
-    assert_states_close(start, before, atol=0.0)  # start not overwritten (note 8.7)
+    assert_states_close(start, before, atol=0.0)  # start not overwritten
     assert states.seq.shape == (horizon + 1, n, 0)  # recurrent memory not kept by default
     full, _, _ = model.imagine(start, policy, horizon, deterministic=True, keep_seq=True)
     assert full.seq.shape[2:] == start.seq.shape[1:]
@@ -196,7 +196,7 @@ def test_imagination_gradients_flow_through_recurrent_state(kind):
     start = start._replace(seq=seq0, deter=seq0) if kind == "rssm" else start._replace(seq=seq0)
     states, _, _ = model.imagine(start, policy, 5, keep_seq=True)
     states.deter[-1].sum().backward()
-    # memory of the sequence model is not detached between steps (note 3.7)
+    # memory of the sequence model is not detached between steps
     assert seq0.grad is not None and seq0.grad.abs().sum() > 0
     # dynamics backpropagation reaches the first action through five steps
     assert first_action.grad is not None and first_action.grad.abs().sum() > 0

@@ -324,7 +324,7 @@ class ActorCritic(nn.Module):
     with alpha = ``reward_weights``, R^k the lambda-returns of term k under its fast critic and S_k its return scale
     (:class:`ReturnNormalizer`). This is a weighted *sum* as in eq. 4.3 (r = r_extr + 0.3 r_g + 0.1 r_nov); DreamerV3
     divides by the sum of the weights, which only rescales A against the entropy bonus. Unlike the reference,
-    REINFORCE also uses the normalised advantages (research note 8.3).
+    REINFORCE also uses the normalised advantages.
 
     * ``gradient="reinforce"`` (default for discrete): ``-w_t (log pi(a_t|s_t) sg(A_t) + eta H_t)``.
     * ``gradient="dynamics"`` (default for box): ``-w_t (A_t + eta H_t)``, where A_t carries gradients back through
@@ -354,8 +354,8 @@ class ActorCritic(nn.Module):
     :param retnorm_percentiles: return normaliser percentiles
     :param retnorm_min_scale: return normaliser floor
     :param reinforce_advantage: ``"normalized"`` (default, the A_t above) or ``"raw"``: REINFORCE uses the reference
-        code's unnormalised weighted average ``sum_k alpha_k (R^k_t - v^k(s_t)) / sum_k alpha_k`` (research note 5.6,
-        8.3; reference-compat switch). Dynamics backpropagation always uses A_t.
+        code's unnormalised weighted average ``sum_k alpha_k (R^k_t - v^k(s_t)) / sum_k alpha_k`` (reference-compat
+        switch). Dynamics backpropagation always uses A_t.
     """
 
     def __init__(
@@ -536,7 +536,7 @@ class ActorCritic(nn.Module):
         entropy = dist.entropy()  # (H, *B)
         if dynamics:
             objective = advantage
-        elif self.reinforce_advantage == "raw":  # reference code: unnormalised weighted average (note 8.3)
+        elif self.reinforce_advantage == "raw":  # reference code: unnormalised weighted average
             advantage = raw_advantage / sum(self.reward_weights.values())
             objective = dist.log_prob(actions.detach()) * advantage.detach()
         else:

@@ -22,7 +22,7 @@ def lambda_returns(
         R_t = r_{t+1} + \gamma c_{t+1} \left[(1 - \lambda) v(s_{t+1}) + \lambda R_{t+1}\right], \qquad R_H = v(s_H)
 
     for t = 0 .. H-1. The reward and continue flag of a step are those of the state it *arrives at* (s_{t+1}); the
-    reference implementation uses r(s_t), c(s_t) instead (research note 5.3 / 8.6), which is off by one.
+    reference implementation uses r(s_t), c(s_t) instead, which is off by one.
 
     Inputs are aligned with the returns, so the advantage is simply ``returns - values``:
 

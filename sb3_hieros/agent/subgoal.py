@@ -4,7 +4,7 @@ The autoencoder compresses a deterministic world state h into 8 one-hot categori
 the level above acts in) and decodes such a code back into h space. The subgoal reward compares the decoded subgoal
 with the current h (max-cosine similarity), the novelty reward is the autoencoder's reconstruction error of h.
 
-Deviations from the reference implementation (research note 8.8): the encoder ends in a plain Linear layer producing
+Deviations from the reference implementation: the encoder ends in a plain Linear layer producing
 logits and the decoder in a plain Linear layer producing h (the reference passes both through LayerNorm + GELU, which
 bounds the decoded values from below), and the reconstruction is compared with h in h's own units in the loss and in
 both rewards (the reference compares a symlog'ed target with raw h in the novelty reward).

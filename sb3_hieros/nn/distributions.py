@@ -188,8 +188,8 @@ def unimix_probs(logits: th.Tensor, unimix: float) -> th.Tensor:
 def sample_categorical_index(probs: th.Tensor, generator: th.Generator | None = None) -> th.Tensor:
     """Draw one class index per row by inverse-CDF: ``(cumsum(p) < u).sum(-1)`` with ``u ~ U[0, 1)``.
 
-    Same distribution as ``torch.multinomial`` but much faster for many small categoricals (research note
-    perf_anchors.md 2.6). The index is clamped to K-1 in case rounding leaves ``cumsum(p)[-1] < u``.
+    Same distribution as ``torch.multinomial`` but much faster for many small categoricals (no per-row kernel
+    launch). The index is clamped to K-1 in case rounding leaves ``cumsum(p)[-1] < u``.
 
     :param probs: (..., K) probabilities (rows sum to 1)
     :param generator: optional torch generator for reproducible draws

@@ -12,7 +12,7 @@ Recurrence of one layer, for t = 0..T-1 with input u_t in R^H, state x_t in C^P 
     x_t = (1 - d_t) * Lambda_bar ⊙ x_{t-1} + B_bar u_t        (x_{-1} = given state, or 0)
     y_t = Re(C x_t) + D ⊙ u_t
 
-Differences to the public reference implementation (research note hieros_reference.md, section 3):
+Differences to the public reference implementation:
 
 * Re(Lambda) is parameterised as ``-exp(log_neg_lambda_real)`` so it stays strictly negative under any
   optimiser step (the reference trains the complex Lambda unconstrained and may become unstable).
