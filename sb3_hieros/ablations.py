@@ -36,7 +36,8 @@ class Ablation:
     """One ablation: a named change of the configuration.
 
     :param name: the name used by ``benchmarks/ablations.py --ablation``
-    :param section: thesis section (``"5.3.1"`` ... ``"5.3.12"``) or ``"reference"`` (a behaviour of the public reference code)
+    :param section: thesis section (``"5.3.1"`` ... ``"5.3.12"``) or ``"reference"`` (a behaviour of the public
+        reference code)
     :param description: what changes, in a few words
     :param changes: the ``config_overrides`` of the ablation given the preset's configuration (some depend on it,
         e.g. the smaller S5WM halves the preset's ``s5_layers``)

@@ -226,7 +226,8 @@ class SubgoalConfig:
 class ReferenceCompatConfig:
     """Switches that reproduce behaviours of the public reference code which this package corrects by default.
 
-    The defaults are the corrected behaviours (``docs/design.md`` lists the differences). Set all three with ``config_overrides={"reference": REFERENCE_BEHAVIOUR}`` (see :data:`REFERENCE_BEHAVIOUR`).
+    The defaults are the corrected behaviours (``docs/design.md`` lists the differences). Set all three with
+    ``config_overrides={"reference": REFERENCE_BEHAVIOUR}`` (see :data:`REFERENCE_BEHAVIOUR`).
 
     :param action_alignment: ``"previous"`` (default): the world model's sequence model at row t consumes
         ``(z_{t-1}, a_{t-1})`` in training, acting and imagination alike. ``"current"``: in world-model training
