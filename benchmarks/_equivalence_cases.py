@@ -26,8 +26,8 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
-#: Tiny networks (every code path of the small preset at a fraction of the cost), as in the tests.
-TINY: dict[str, Any] = {
+#: Tiny networks: every code path of the small preset at a fraction of the cost (the tests use them too).
+TINY_NETWORKS: dict[str, Any] = {
     "world_model": {
         "s5_layers": 1,
         "s5_model_dim": 16,
@@ -44,8 +44,12 @@ TINY: dict[str, Any] = {
         "head_layers": 1,
         "warmup": 2,
     },
-    "actor_critic": {"units": 16, "layers": 1, "novelty_weight": 0.1},
+    "actor_critic": {"units": 16, "layers": 1, "novelty_weight": 0.1},  # keeps the novelty critic in use
     "subgoal": {"units": 16, "layers": 1, "n_cat": 4, "n_classes": 4},
+}
+#: The cases' configuration: the tiny networks, 2 levels, k = 2, 8-step chunks, horizon 4.
+TINY: dict[str, Any] = {
+    **TINY_NETWORKS,
     "n_levels": 2,
     "subgoal_interval": 2,
     "batch_length": 8,

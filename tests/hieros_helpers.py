@@ -8,6 +8,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from benchmarks._equivalence_cases import TINY_NETWORKS
+
 #: Tiny world model shared by the world-model and subactor tests (two S5 layers, widths of 16).
 TINY_WORLD_MODEL: dict[str, Any] = dict(
     s5_layers=2,
@@ -27,26 +29,7 @@ TINY_WORLD_MODEL: dict[str, Any] = dict(
 )
 
 #: Tiny networks: every code path of the small preset, a fraction of the cost.
-TINY_OVERRIDES: dict[str, Any] = {
-    "world_model": {
-        "s5_layers": 1,
-        "s5_model_dim": 16,
-        "s5_state_dim": 8,
-        "s5_hippo_blocks": 2,
-        "deter_dim": 16,
-        "stoch_groups": 4,
-        "stoch_classes": 4,
-        "hidden": 16,
-        "cnn_depth": 2,
-        "mlp_units": 16,
-        "mlp_layers": 1,
-        "head_units": 16,
-        "head_layers": 1,
-        "warmup": 2,
-    },
-    "actor_critic": {"units": 16, "layers": 1, "novelty_weight": 0.1},  # keeps the novelty critic under test
-    "subgoal": {"units": 16, "layers": 1, "n_cat": 4, "n_classes": 4},
-}
+TINY_OVERRIDES: dict[str, Any] = TINY_NETWORKS
 
 
 #: HierosConfig fields that :func:`tiny_kwargs` takes as keywords and puts into ``config_overrides``
