@@ -278,7 +278,7 @@ class _PeriodicDrawingCallback(BaseCallback):
 
 class SubgoalDecodeCallback(_PeriodicDrawingCallback):
     """Every ``every`` environment steps, decode the current subgoal of every level above 0 into the environment's
-    observation space (:func:`decode_subgoals`, thesis 4.3.2) and show it next to the real observation.
+    observation space (:meth:`HIEROS.decoded_subgoals`, thesis 4.3.2) and show it next to the real observation.
 
     One picture per shown env: images as a grid with one column per level (observation | level-1 subgoal |
     level-2 subgoal ...) and one row per image key; vector observations as a plot of the decoded vectors against
