@@ -87,6 +87,7 @@ import pickle
 import warnings
 import zipfile
 import zlib
+from collections.abc import Iterable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -95,11 +96,11 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.save_util import json_to_data, open_path
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
 from sb3_hieros.agent.shared import train_shared_hierarchy
 from sb3_hieros.buffers import (
+    DictSequenceReplayBuffer,
     ETBSReplayBuffer,
     SequenceReplayBuffer,
     SequenceSamples,
@@ -117,6 +118,8 @@ from sb3_hieros.policies import (
     check_finite_observations,
     check_observation_space,
 )
+from sb3_hieros.replay_io import read_replay, write_replay
+from sb3_hieros.save_util import prepare_model_load, qualified_name, safe_load_values, write_archive
 
 __all__ = ["HIEROS", "current_action_alignment"]
 
@@ -172,45 +175,6 @@ def current_action_alignment(samples: SequenceSamples, action_vectors: th.Tensor
     next_first = th.cat([is_first[:, 1:], th.zeros_like(is_first[:, :1])], 1)
     keep = ~(is_first | next_first)
     return samples._replace(actions=shifted * keep.unsqueeze(-1).to(shifted.dtype))
-
-
-def _check_hieros_save(path: str | pathlib.Path | io.BufferedIOBase, custom_objects: dict[str, Any] | None) -> None:
-    """Raise ``ValueError`` unless ``path`` is a readable zip whose ``data`` entry names a :class:`HierosPolicy`.
-
-    Reads only the small ``data`` entry (no tensors); a file-like ``path`` is left at its position.
-
-    :param path: what :meth:`HIEROS.load` was given
-    :param custom_objects: as for ``load``
-    """
-    file = open_path(path, "r", verbose=0, suffix="zip")
-    start = file.tell() if file.seekable() else None
-    n_entries, data = 0, None
-    try:
-        with zipfile.ZipFile(file) as archive:
-            names = archive.namelist()
-            n_entries = len(names)
-            if "data" in names:
-                data = json_to_data(archive.read("data").decode(), custom_objects=custom_objects)
-    except (zipfile.BadZipFile, zlib.error, EOFError, UnicodeDecodeError, ValueError, KeyError) as err:
-        raise ValueError(
-            f"{path} is not a readable HIEROS save (truncated or corrupted?): {type(err).__name__}: {err}"
-        ) from None
-    finally:
-        if isinstance(path, str | pathlib.Path):
-            file.close()
-        elif start is not None:
-            file.seek(start)
-    if data is None:
-        raise ValueError(
-            f"{path} is not a HIEROS save: none of its {n_entries} zip entries is 'data'; the file may be truncated"
-        )
-    policy_class = data.get("policy_class")
-    if not (isinstance(policy_class, type) and issubclass(policy_class, HierosPolicy)):
-        name = getattr(policy_class, "__qualname__", repr(policy_class))
-        raise ValueError(
-            f"{path} was not saved by HIEROS: its policy class is {name}, expected a HierosPolicy; load it with the "
-            "algorithm that saved it"
-        )
 
 
 class HIEROS(OffPolicyAlgorithm):
@@ -485,30 +449,26 @@ class HIEROS(OffPolicyAlgorithm):
         """
         return [self.replay_buffer, *getattr(self.replay_buffer, "higher_levels", [])]
 
-    def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
-        """Load the replay of every level (level 0's pickle carries the higher levels), see SB3.
+    def save_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase) -> None:
+        """Save the replay of every level without pickle (:mod:`sb3_hieros.replay_io`), atomically: a crash during the
+        save leaves the previous file at ``path`` intact (:mod:`sb3_hieros.save_util`).
 
-        :param path: pickle written by ``save_replay_buffer``
-        :param truncate_last_traj: passed to SB3 (only used by HER)
+        :param path: file (``.pkl`` appended when it has no suffix, as in SB3; the content is a zip) or binary file
         """
-        super().load_replay_buffer(path, truncate_last_traj)
-        assert self.config is not None
-        higher = getattr(self.replay_buffer, "higher_levels", None)
-        if not isinstance(self.replay_buffer, SequenceReplayBuffer) or not isinstance(higher, list):
-            raise ValueError(f"{path} does not hold a HIEROS replay (SequenceReplayBuffer with higher_levels)")
-        if len(higher) != self._n_replays() - 1:
-            raise ValueError(
-                f"{path} holds the replay of {len(higher) + 1} levels, but this model has "
-                f"n_levels={self.config.n_levels} with {self._n_replays()} replays "
-                f"(hierarchical_world_models={self.config.hierarchical_world_models})"
-            )
-        for buffer in self.level_buffers():
-            if buffer.n_envs != self.n_envs:
-                raise ValueError(
-                    f"{path} holds a replay of {buffer.n_envs} envs, but this model has n_envs={self.n_envs}"
-                )
-        for buffer in higher:
-            buffer.device = self.device
+        buffers = self.level_buffers()
+        write_archive(path, lambda target: write_replay(target, buffers), suffix="pkl")
+
+    def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
+        """Load the replay of every level, written by :meth:`save_replay_buffer` (or a legacy pickle, with a warning).
+
+        The file is checked against this model's buffers (levels, ``n_envs``, rows, every array's dtype and shape,
+        checksums) before anything is replaced; on ``ValueError`` the model's replay is unchanged.
+
+        :param path: the file or a binary file object
+        :param truncate_last_traj: unused (SB3's HER option)
+        """
+        buffers = read_replay(path, self.level_buffers())
+        self.replay_buffer = buffers[0]
 
     def _setup_learn(
         self,
@@ -844,14 +804,20 @@ class HIEROS(OffPolicyAlgorithm):
         custom_objects: dict[str, Any] | None = None,
         print_system_info: bool = False,
         force_reset: bool = True,
+        safe: bool = False,
         **kwargs: Any,
     ) -> SelfHIEROS:
         """SB3's ``load``, refusing files that are not an intact HIEROS save with a short ``ValueError``.
 
-        A truncated or corrupted zip, a zip without HIEROS's data, or a save of another algorithm (e.g. DQN) raise
-        ``ValueError`` before anything is built; a corrupted tensor file inside the zip raises ``ValueError`` with
-        torch's message instead of torch's traceback. An env whose spaces differ from the saved ones raises SB3's
-        ``ValueError``.
+        A truncated or corrupted zip, a member that does not match the checksum recorded at saving, a zip without
+        HIEROS's data, or a save of another algorithm (e.g. DQN) raise ``ValueError`` before anything is built; a
+        corrupted tensor file inside the zip raises ``ValueError`` with torch's message instead of torch's traceback.
+        An env whose spaces differ from the saved ones raises ``ValueError``.
+
+        SB3 keeps spaces, classes and schedules as pickles in the zip, and unpickling runs whatever code the file
+        names: load files you did not save yourself with ``safe=True``, which unpickles nothing (spaces from ``env``,
+        the policy class, learning rate and episode statistics from plain values of the file; the env is reset
+        before training goes on). Without it every pickled entry is unpickled once.
 
         :param path: zip file (``.zip`` may be omitted) or file-like object
         :param env: environment to attach (spaces must match the saved ones), or None
@@ -859,10 +825,25 @@ class HIEROS(OffPolicyAlgorithm):
         :param custom_objects: values replacing saved attributes (see SB3)
         :param print_system_info: print the system info of the save
         :param force_reset: reset the env before training continues (SB3: avoids unexpected behaviour)
+        :param safe: load without unpickling anything (``env`` required); for files from elsewhere
         :param kwargs: attributes to set on the loaded model (e.g. ``learning_starts=0``)
         :return: the model
         """
-        _check_hieros_save(path, custom_objects)
+        env_spaces = None
+        if safe:
+            if env is None:
+                raise ValueError("HIEROS.load(..., safe=True) takes the spaces from the env: pass env=...")
+            env = cls._wrap_env(env, verbose=0)
+            env_spaces = (env.observation_space, env.action_space)
+        custom_objects = prepare_model_load(
+            path,
+            custom_objects,
+            safe,
+            env_spaces,
+            HierosPolicy,
+            {qualified_name(p): p for p in cls.policy_aliases.values()},  # type: ignore[misc]
+            {qualified_name(b): b for b in (SequenceReplayBuffer, DictSequenceReplayBuffer, ETBSReplayBuffer)},  # type: ignore[misc]
+        )
         try:
             return super().load(  # type: ignore[return-value]
                 path,
@@ -877,6 +858,24 @@ class HIEROS(OffPolicyAlgorithm):
             raise ValueError(
                 f"{path} could not be loaded as a HIEROS model (corrupted file?): {type(err).__name__}: {err}"
             ) from None
+
+    def save(
+        self,
+        path: str | pathlib.Path | io.BufferedIOBase,
+        exclude: Iterable[str] | None = None,
+        include: Iterable[str] | None = None,
+    ) -> None:
+        """SB3's ``save``, written atomically (a crash during the save leaves the previous file at ``path`` intact)
+        with the checksum of every member and the plain values ``load(..., safe=True)`` needs
+        (:mod:`sb3_hieros.save_util`).
+
+        :param path: zip file (``.zip`` appended when it has no suffix) or binary file object
+        :param exclude: attributes not to save, besides the default ones
+        :param include: attributes to save although excluded by default
+        """
+        write_archive(
+            path, lambda target: super(HIEROS, self).save(target, exclude, include), "zip", safe_load_values(self)
+        )
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "config", "_hier", "_reward_sums", "_subgoal0"]
