@@ -75,7 +75,10 @@ Faults (see ``docs/resume.md`` for resuming a run)
   ``train/level{i}/nonfinite/<name>`` give the fraction of skipped steps, ``train/level{i}/skipped_updates`` counts the
   updates with a skipped step, and ``max_nonfinite_updates`` such updates of one level in a row stop training with
   ``FloatingPointError`` naming the level and the loss.
-* ``load`` refuses truncated or corrupted files and saves of other algorithms with ``ValueError``.
+* ``save`` and ``save_replay_buffer`` write atomically (a crash during a save leaves the previous file intact) with
+  the sha256 of every member; ``load`` and ``load_replay_buffer`` refuse truncated, corrupted or changed files and
+  saves of other algorithms with ``ValueError``, and a rejected replay leaves the model's replay as it was.
+  ``load(..., safe=True)`` unpickles nothing (:mod:`sb3_hieros.save_util`).
 * A warning estimates the replay memory of all levels before allocation when it exceeds the available memory.
 """
 

@@ -158,6 +158,20 @@ def test_failed_save_leaves_the_file_and_no_temporary(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model.zip", "replay.pkl"]
 
 
+def test_save_and_load_through_file_objects(saved):
+    model, _ = saved
+    model_file, replay_file = io.BytesIO(), io.BytesIO()
+    model.save(model_file)
+    model.save_replay_buffer(replay_file)
+    for safe in (False, True):
+        model_file.seek(0)
+        loaded = HIEROS.load(model_file, env=make_vec_env("CartPole-v1", n_envs=1), safe=safe)
+        assert loaded._level_updates == model._level_updates
+    replay_file.seek(0)
+    loaded.load_replay_buffer(replay_file)
+    _assert_same_arrays(_arrays(loaded), _arrays(model))
+
+
 # ------------------------------------------------------------------------------------------------ replay files
 
 
