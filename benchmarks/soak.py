@@ -486,13 +486,17 @@ def run_fault_soak(args: argparse.Namespace) -> FaultReport:
                 report.kills[-1].resumed_from = resume
             plan = None
             if len(report.kills) < args.faults:
-                if rng.random() < 0.5:
+                every = args.checkpoint_every
+                saves_left = (args.steps - 1) // every - resume // every  # before the run ends
+                first = 1 if resume >= args.kill_after else 1 + (args.kill_after - resume) // every
+                nth_save = min(int(first + rng.integers(0, 2)), saves_left)
+                if rng.random() < 0.5 or nth_save < 1:
                     low = max(resume, args.kill_after) + 1
-                    plan = {"kind": "update", "after": int(rng.integers(low, low + 2 * args.checkpoint_every))}
+                    after = min(int(rng.integers(low, low + 2 * every)), args.steps - every)  # an update comes later
+                    plan = {"kind": "update", "after": after}
                 else:
-                    first = 1 if resume >= args.kill_after else 1 + (args.kill_after - resume) // args.checkpoint_every
                     delay = float(rng.uniform(0.0, 1.0) * np.median(save_seconds))
-                    plan = {"kind": "save", "nth_save": int(first + rng.integers(0, 2)), "delay": delay}
+                    plan = {"kind": "save", "nth_save": nth_save, "delay": delay}
             kill, done, durations = _run_segment(args, faulty, plan, report)
             save_seconds += durations
             if kill is not None:
@@ -537,8 +541,10 @@ def main() -> None:
     if args.faults:
         if args.train_ratio is None or args.learning_starts is None:
             parser.error("fault mode needs --train-ratio and --learning-starts")
-        if args.checkpoint_every < 1 or args.kill_after >= args.steps:
-            parser.error("fault mode needs --checkpoint-every >= 1 and --kill-after < --steps")
+        if args.checkpoint_every < 1 or args.kill_after + 2 * args.checkpoint_every > args.steps:
+            parser.error(
+                "fault mode needs --checkpoint-every >= 1 and --kill-after + 2 * --checkpoint-every <= --steps"
+            )
         print(environment_header())
         print(
             f"fault soak: small preset, CartPole-v1, steps {args.steps}, buffer_size {args.buffer_size}, "

@@ -56,6 +56,7 @@ __all__ = [
     "HashingReader",
     "atomic_path",
     "load_objects",
+    "plain_builders",
     "prepare_model_load",
     "qualified_name",
     "resolve_path",
@@ -389,26 +390,18 @@ def _space_mismatch(saved: Any, space: spaces.Space) -> str | None:
     return None
 
 
-def safe_load_objects(
-    data: Mapping[str, Any],
-    manifest: Mapping[str, Any] | None,
-    observation_space: spaces.Space,
-    action_space: spaces.Space,
-    classes: Mapping[str, Mapping[str, type]],
-    label: str,
-    provided: Collection[str] = (),
-) -> dict[str, Any]:
-    """Replacements, built without unpickling, for every ``":serialized:"`` entry of a model's ``data``.
+def plain_builders(
+    data: Mapping[str, Any], manifest: Mapping[str, Any] | None, classes: Mapping[str, Mapping[str, type]], label: str
+) -> dict[str, Callable[[], Any]]:
+    """Builders, which unpickle nothing, of the ``":serialized:"`` entries of a model's ``data`` that plain values
+    (the manifest's and ``data``'s own) determine: everything SB3 pickles for HIEROS but the spaces.
 
     :param data: the ``data`` member as plain JSON
     :param manifest: the file's manifest (holds the policy class, learning rate and episode statistics)
-    :param observation_space: the environment's observation space (checked against the saved description)
-    :param action_space: the environment's action space
     :param classes: per entry (``"policy_class"``, ``"replay_buffer_class"``), the classes a file may name there, by
         :func:`qualified_name`
     :param label: the file, for messages
-    :param provided: entries the caller replaces itself (``custom_objects``): nothing is built for them
-    :return: ``custom_objects`` for SB3's ``load``
+    :return: entry -> zero-argument builder
     """
     values = dict(manifest or {})
     window = data.get("_stats_window_size", 100)
@@ -429,11 +422,9 @@ def safe_load_objects(
         infos = values.get("ep_info_buffer") or []
         return collections.deque((dict(i) for i in infos if isinstance(i, dict)), maxlen=window)
 
-    builders: dict[str, Callable[[], Any]] = {
+    return {
         "policy_class": lambda: named_class("policy_class"),
         "replay_buffer_class": lambda: named_class("replay_buffer_class"),
-        "observation_space": lambda: observation_space,
-        "action_space": lambda: action_space,
         "learning_rate": lambda: schedule_from_json(values.get("learning_rate")),
         "lr_schedule": lambda: None,  # rebuilt from learning_rate by _setup_model
         "train_freq": lambda: TrainFreq(1, TrainFrequencyUnit.STEP),
@@ -445,6 +436,30 @@ def safe_load_objects(
             (bool(s) for s in values.get("ep_success_buffer") or []), maxlen=window
         ),
     }
+
+
+def safe_load_objects(
+    data: Mapping[str, Any],
+    manifest: Mapping[str, Any] | None,
+    observation_space: spaces.Space,
+    action_space: spaces.Space,
+    classes: Mapping[str, Mapping[str, type]],
+    label: str,
+    provided: Collection[str] = (),
+) -> dict[str, Any]:
+    """Replacements, built without unpickling, for every ``":serialized:"`` entry of a model's ``data``.
+
+    :param data: the ``data`` member as plain JSON
+    :param manifest: the file's manifest (holds the policy class, learning rate and episode statistics)
+    :param observation_space: the environment's observation space (checked against the saved description)
+    :param action_space: the environment's action space
+    :param classes: as for :func:`plain_builders`
+    :param label: the file, for messages
+    :param provided: entries the caller replaces itself (``custom_objects``): nothing is built for them
+    :return: ``custom_objects`` for SB3's ``load``
+    """
+    builders = plain_builders(data, manifest, classes, label)
+    builders.update(observation_space=lambda: observation_space, action_space=lambda: action_space)
     for key, space in (("observation_space", observation_space), ("action_space", action_space)):
         if key in provided:
             continue
@@ -480,14 +495,19 @@ def load_objects(
     custom_objects: Mapping[str, Any] | None,
     check_policy: Callable[[Any], None],
     label: str,
+    fallbacks: Mapping[str, Callable[[], Any]] | None = None,
 ) -> dict[str, Any]:
     """Every ``":serialized:"`` entry of ``data`` unpickled exactly once (``custom_objects`` keys are not), the
     policy class first and checked by ``check_policy`` before anything else is unpickled.
+
+    An entry that cannot be unpickled (e.g. a schedule pickled by another Python version) is rebuilt by its
+    ``fallbacks`` builder with a warning, as SB3 warns and goes on; without one it raises ``ValueError``.
 
     :param data: the ``data`` member as plain JSON
     :param custom_objects: the user's replacements (win over the file)
     :param check_policy: raises ``ValueError`` for a policy class the caller cannot load
     :param label: the file, for messages
+    :param fallbacks: builders from plain values (:func:`plain_builders`)
     :return: ``custom_objects`` for SB3's ``load``, so that SB3 unpickles nothing again
     """
     objects = dict(custom_objects or {})
@@ -496,7 +516,13 @@ def load_objects(
     if "policy_class" not in keys:
         check_policy(objects.get("policy_class", data.get("policy_class")))
     for key in keys:
-        objects[key] = _unpickle(key, data[key], label)
+        try:
+            objects[key] = _unpickle(key, data[key], label)
+        except ValueError as err:
+            if key not in (fallbacks or {}):
+                raise
+            warnings.warn(f"{err}; rebuilt from the file's plain values instead", stacklevel=4)
+            objects[key] = fallbacks[key]()  # type: ignore[index]
         if key == "policy_class":
             check_policy(objects[key])
     return objects
@@ -568,8 +594,9 @@ def prepare_model_load(
                 "load it with the algorithm that saved it"
             )
 
+    classes = {"policy_class": policies, "replay_buffer_class": buffers}
     if not safe:
-        return load_objects(data, custom_objects, check_policy, label)
+        return load_objects(data, custom_objects, check_policy, label, plain_builders(data, manifest, classes, label))
     saved_policy = data.get("policy_class")
     module = saved_policy.get("__module__") if isinstance(saved_policy, dict) else None
     if manifest is None and "policy_class" not in (custom_objects or {}):
@@ -584,7 +611,6 @@ def prepare_model_load(
             "...}"
         )
     assert env_spaces is not None
-    classes = {"policy_class": policies, "replay_buffer_class": buffers}
     objects = safe_load_objects(data, manifest, *env_spaces, classes, label, provided=set(custom_objects or {}))
     objects.update(custom_objects or {})
     check_policy(objects.get("policy_class"))

@@ -375,6 +375,22 @@ def test_safe_load_of_other_files(saved, tmp_path):
     assert not marker.exists()
 
 
+def test_entry_that_cannot_be_unpickled(saved, tmp_path):
+    """As SB3 warns and goes on when a pickled entry fails (e.g. a schedule from another Python), a plain load rebuilds
+    such an entry from plain values with a warning; an entry that plain values cannot rebuild is named in an error."""
+    _, path = saved
+    with zipfile.ZipFile(path / "model.zip") as archive:
+        data = json.loads(archive.read("data"))
+    for key in ("lr_schedule", "observation_space"):
+        broken = json.loads(json.dumps(data))
+        broken[key][":serialized:"] = base64.b64encode(b"not a pickle").decode()
+        _rezip(path / "model.zip", tmp_path / f"{key}.zip", {"data": json.dumps(broken).encode()}, manifest=True)
+    with pytest.warns(UserWarning, match="entry 'lr_schedule' of its data could not be unpickled.*rebuilt"):
+        assert HIEROS.load(tmp_path / "lr_schedule.zip").lr_schedule(1.0) == pytest.approx(1e-3)
+    with pytest.raises(ValueError, match="entry 'observation_space' of its data could not be unpickled"):
+        HIEROS.load(tmp_path / "observation_space.zip")
+
+
 def test_safe_load_rebuilds_schedules(tmp_path):
     linear = LinearSchedule(1e-3, 1e-4, 0.5)
     model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(learning_rate=linear))
