@@ -1,8 +1,9 @@
 """Demo: train HIEROS on CartPole-v1 and plot its learning curve (``make demo`` runs ``python -m benchmarks.demo``).
 
-Trains the given preset (default ``small``) for ``--steps`` environment steps, evaluating the deterministic policy
-every ``--eval-freq`` steps on a separate environment (SB3 ``EvalCallback``, ``--eval-episodes`` episodes), and
-writes to ``--out`` (default ``results/demo/``):
+Trains the given preset (default ``small``) for ``--steps`` environment steps with SB3's progress bar
+(``--no-progress-bar`` to hide it), evaluating the deterministic policy every ``--eval-freq`` steps on a separate
+environment (SB3 ``EvalCallback``, ``--eval-episodes`` episodes). Its log lines are flushed as they are printed, so
+output redirected to a file shows them at once. It writes to ``--out`` (default ``results/demo/``):
 
 * ``learning_curve.png``: mean and standard deviation of the evaluation return over the training steps;
 * ``evaluations.npz``: SB3's evaluation log (``timesteps``, ``results``, ``ep_lengths``);
@@ -10,8 +11,9 @@ writes to ``--out`` (default ``results/demo/``):
 * ``progress.csv``: the training log (``rollout/*``, ``time/*``, ``train/level{i}/*``);
 * ``model.zip``: the trained model (``HIEROS.load``);
 * ``subgoals/subgoals_<step>_env0.png``: every ``--subgoal-every`` steps (default 2000), the subgoal of every level
-  above 0 decoded into the observation space and plotted against the real observation
-  (:class:`~sb3_hieros.SubgoalDecodeCallback`, added by :func:`extra_callbacks`).
+  above 0 decoded into the observation space, as bars per observation entry next to the real observation and, for
+  classic-control tasks, as the frame the env draws for it (:class:`~sb3_hieros.SubgoalDecodeCallback`, added by
+  :func:`extra_callbacks`).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import sys
 import time
 
 import numpy as np
@@ -89,7 +92,12 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument(
         "--threads", type=int, default=None, help="torch CPU threads (default: torch's, i.e. OMP_NUM_THREADS)"
     )
+    parser.add_argument(
+        "--progress-bar", action=argparse.BooleanOptionalAction, default=True, help="show SB3's progress bar"
+    )
     args = parser.parse_args(argv)
+    if hasattr(sys.stdout, "reconfigure"):
+        sys.stdout.reconfigure(line_buffering=True)  # every log line reaches a redirected file at once
     if args.threads is not None:
         th.set_num_threads(args.threads)
 
@@ -111,7 +119,17 @@ def main(argv: list[str] | None = None) -> dict:
         verbose=1,
     )
     start = time.perf_counter()
-    model.learn(args.steps, callback=[evaluation, *extra_callbacks(out, args.subgoal_every)])
+    n_params = sum(p.numel() for p in model.policy.parameters())
+    print(
+        f"{n_params / 1e6:.2f}M parameters; random actions for the first {model.learning_starts} steps, then training; "
+        f"an evaluation every {args.eval_freq} steps",
+        flush=True,
+    )
+    model.learn(
+        args.steps,
+        callback=[evaluation, *extra_callbacks(out, args.subgoal_every)],
+        progress_bar=args.progress_bar,
+    )
     wall = time.perf_counter() - start
     model.save(out / "model.zip")
 
