@@ -50,10 +50,10 @@ demo: $(DEMO_STAMP)
 test: $(DEV_STAMP)
 	MUJOCO_GL=$${MUJOCO_GL:-egl} $(PY) -m pytest -q
 
-# The Sphinx site into docs/_build/html, warnings as errors; then the guide's code examples as doctests.
+# The Sphinx site into docs/_build/html, warnings as errors. (The code examples of README.md and docs/ run in the
+# tests: tests/test_docs_examples.py.)
 docs: $(DEV_STAMP)
-	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(PY) -m sphinx -W --keep-going -q -b html docs docs/_build/html
-	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(PY) -m sphinx -W --keep-going -q -b doctest docs docs/_build/doctest
+	$(PY) -m sphinx -W --keep-going -q -b html docs docs/_build/html
 
 lint: $(DEV_STAMP)
 	$(PY) -m ruff format --check .
