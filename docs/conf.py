@@ -15,7 +15,7 @@ import sb3_hieros  # noqa: E402
 
 project = "sb3-hieros"
 author = "sb3-hieros contributors"
-copyright = "sb3-hieros contributors"  # noqa: A001 (Sphinx's name)
+copyright = "sb3-hieros contributors"
 release = sb3_hieros.__version__
 version = release
 

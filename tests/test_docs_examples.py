@@ -77,7 +77,7 @@ def test_examples_run(page, tiny_hieros, tmp_path, monkeypatch):
     namespace: dict[str, Any] = {"__name__": "__example__"}
     for index, block in enumerate(python_blocks(page)):
         code = compile(scaled(block), f"{page.name}[block {index}]", "exec")
-        exec(code, namespace)  # noqa: S102 (the documentation's own examples)
+        exec(code, namespace)  # the documentation's own examples
     trained = [value for value in namespace.values() if isinstance(value, HIEROS) and value.num_timesteps > 0]
     if "learn(" in page.read_text():
         assert trained, f"{page.name}: its examples call learn, but no trained model is left"

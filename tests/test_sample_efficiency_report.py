@@ -31,5 +31,5 @@ def test_report_merges_files_and_labels_variants(tmp_path):
     assert markdown[4].startswith("| ppo | 1 | 150.0 +- 0.0 (150.0) |")
     assert (tmp_path / "out" / "sample_efficiency.png").stat().st_size > 1000
     (tmp_path / "bad.json").write_text("{}")
-    with pytest.raises(ValueError, match="not a results.json"):
+    with pytest.raises(ValueError, match=r"not a results\.json"):
         main(["--report", str(tmp_path / "bad.json"), "--out", str(tmp_path / "out")])
