@@ -32,6 +32,7 @@ import contextlib
 import os
 import pathlib
 import random
+import textwrap
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -639,6 +640,7 @@ class SubgoalDecodeCallback(_PeriodicDrawingCallback):
                 label = name if i == 0 else f"{name} (decoded)"
                 ax.bar(x + (i - (columns - 1) / 2) * bar, value, bar, color=color, alpha=0.85, label=label)
             labels = (entry_labels or {}).get(key) or [f"{key}[{i}]" for i in range(x.size)]
+            labels = [textwrap.fill(label, 14) for label in labels]  # long names on two lines
             ax.set_xticks(x, labels, rotation=0 if x.size <= 6 else 45, ha="center" if x.size <= 6 else "right")
             ax.axhline(0.0, color="grey", linewidth=0.8)
             ax.set_ylabel("value" if key == "obs" else f"{key!r} value")
