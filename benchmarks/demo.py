@@ -14,6 +14,9 @@ output redirected to a file shows them at once. It writes to ``--out`` (default 
   above 0 decoded into the observation space, as bars per observation entry next to the real observation and, for
   classic-control tasks, as the frame the env draws for it (:class:`~sb3_hieros.SubgoalDecodeCallback`, added by
   :func:`extra_callbacks`).
+
+``--report DIR`` trains nothing: it redraws ``DIR/learning_curve.png`` from the run's ``evaluations.npz`` and
+``final_eval.json`` (``docs/demo/`` holds such a run).
 """
 
 from __future__ import annotations
@@ -72,6 +75,18 @@ def plot_learning_curve(evaluations: pathlib.Path, path: pathlib.Path, title: st
     plt.close(fig)
 
 
+def report(out: pathlib.Path) -> dict:
+    """Redraw ``learning_curve.png`` of a finished demo run from its ``evaluations.npz`` and ``final_eval.json``.
+
+    :param out: the run's output directory
+    :return: the run's summary (``final_eval.json``)
+    """
+    summary = json.loads((out / "final_eval.json").read_text())
+    title = f"HIEROS ({summary['preset']}) on {summary['env']}"
+    plot_learning_curve(out / "evaluations.npz", out / "learning_curve.png", title)
+    return summary
+
+
 def main(argv: list[str] | None = None) -> dict:
     """Train, evaluate, plot and save (see the module docstring).
 
@@ -95,7 +110,12 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument(
         "--progress-bar", action=argparse.BooleanOptionalAction, default=True, help="show SB3's progress bar"
     )
+    parser.add_argument(
+        "--report", type=pathlib.Path, default=None, help="train nothing: redraw DIR/learning_curve.png from its run"
+    )
     args = parser.parse_args(argv)
+    if args.report is not None:
+        return report(args.report)
     if hasattr(sys.stdout, "reconfigure"):
         sys.stdout.reconfigure(line_buffering=True)  # every log line reaches a redirected file at once
     if args.threads is not None:
