@@ -31,7 +31,7 @@ $(TORCH_STAMP): | $(PY)
 		echo "installing torch==$(TORCH_VERSION) from the default index"; \
 		$(PY) -m pip install -q torch==$(TORCH_VERSION); \
 	fi
-	@$(PY) -c "import torch; print(f'torch {torch.__version__} (CUDA build: {torch.version.cuda is not None})')"
+	@$(PY) -W ignore -c "import torch; print(f'torch {torch.__version__} (CUDA build: {torch.version.cuda is not None})')"
 	touch $(TORCH_STAMP)
 
 # The demo needs the package and its plotting/progress extra only.
