@@ -147,6 +147,10 @@ class ClassicControlRenderer:
     """Draws an observation of a gymnasium classic-control task as the frame the task renders for that state: sets
     ``env.unwrapped.state`` of an ``rgb_array`` env of the same id and calls ``render()`` (needs pygame).
 
+    On a machine without a display (neither ``DISPLAY`` nor ``WAYLAND_DISPLAY`` set) it sets ``SDL_VIDEODRIVER=dummy``
+    unless the variable is already set: the frames are drawn off-screen, and SDL would otherwise print an error
+    about the missing display.
+
     :param env_id: gymnasium id of a task in :data:`CLASSIC_CONTROL_OBSERVATIONS`, e.g. ``"CartPole-v1"``
     """
 
@@ -157,6 +161,8 @@ class ClassicControlRenderer:
                 f"env_id must be a classic-control task, one of {sorted(CLASSIC_CONTROL_OBSERVATIONS)}, got {env_id!r}"
             )
         self.layout = CLASSIC_CONTROL_OBSERVATIONS[name]
+        if "DISPLAY" not in os.environ and "WAYLAND_DISPLAY" not in os.environ:
+            os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
         self.env = gym.make(env_id, render_mode="rgb_array")
         self.env.reset(seed=0)
 
