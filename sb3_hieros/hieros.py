@@ -185,7 +185,8 @@ class HIEROS(OffPolicyAlgorithm):
 
     :param policy: ``"MlpPolicy"``, ``"CnnPolicy"``, ``"MultiInputPolicy"`` or a :class:`HierosPolicy` subclass
     :param env: environment (gymnasium env, VecEnv or registered id)
-    :param preset: ``"paper"`` (thesis 4.6.3) or ``"small"`` (CPU); fills every value not given
+    :param preset: ``"paper"`` (thesis 4.6.3, for a GPU; built on a CPU it warns) or ``"small"`` (CPU); fills every
+        value not given
     :param learning_rate: world-model learning rate of every level (float or schedule); None = preset
     :param buffer_size: level-0 replay capacity in steps (level i: ``buffer_size // k**i``); None = preset
     :param learning_starts: environment steps of uniformly random actions before training; None = preset
@@ -319,6 +320,15 @@ class HIEROS(OffPolicyAlgorithm):
             check_action_space(self.action_space)
         if _init_setup_model:
             self._setup_model()
+            if self.preset == "paper" and self.device.type == "cpu":
+                n_params = sum(p.numel() for p in self.policy.parameters())
+                warnings.warn(
+                    f"HIEROS builds the 'paper' preset (thesis 4.6.3, {n_params / 1e6:.1f}M parameters for this env; "
+                    "it is the default when preset is not given) on a CPU, where training it is very slow. On a CPU "
+                    'pass preset="small"; the paper preset is meant for a CUDA GPU (device="auto" picks one).',
+                    UserWarning,
+                    stacklevel=2,
+                )
 
     # ------------------------------------------------------------------------------------------------ setup
 
@@ -779,7 +789,8 @@ class HIEROS(OffPolicyAlgorithm):
     ) -> SelfHIEROS:
         """Train for ``total_timesteps`` environment steps (SB3's ``learn``; default ``tb_log_name="HIEROS"``).
 
-        :param total_timesteps: environment steps (a lower bound: the loop finishes its vec-env step)
+        :param total_timesteps: environment steps (a lower bound: the loop finishes its vec-env step); a
+            ``UserWarning`` says when the run ends before ``learning_starts`` is passed, i.e. before the first update
         :param callback: SB3 callback(s)
         :param log_interval: dump the logs every ``log_interval`` episodes
         :param tb_log_name: tensorboard run name
@@ -787,6 +798,16 @@ class HIEROS(OffPolicyAlgorithm):
         :param progress_bar: show a progress bar (tqdm and rich)
         :return: self
         """
+        steps_at_end = total_timesteps + (0 if reset_num_timesteps else self.num_timesteps)
+        if steps_at_end <= self.learning_starts:
+            warnings.warn(
+                f"learn({total_timesteps}) ends at {steps_at_end} environment steps, before the first update: HIEROS "
+                f"acts at random and does not train during the first learning_starts={self.learning_starts} steps. "
+                f"Train for more than {self.learning_starts - (steps_at_end - total_timesteps)} steps or lower "
+                "learning_starts.",
+                UserWarning,
+                stacklevel=2,
+            )
         return super().learn(
             total_timesteps=total_timesteps,
             callback=callback,
