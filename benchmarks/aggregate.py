@@ -12,10 +12,14 @@
 
 The aggregate statistics follow Agarwal et al. (2021), as the thesis does: mean and median are taken over tasks of
 the per-task mean over runs; IQM and optimality gap over all (run, task) scores; the confidence intervals come from a
-stratified bootstrap (runs resampled with replacement within each task, percentile interval). This is an own numpy
-implementation (:func:`stratified_bootstrap_ci`) so that ``rliable`` is not needed; for equal run counts per task it
-computes the same statistics as rliable's ``aggregate_*`` functions. Games without a thesis row (UpNDown) are listed
-but left out of the aggregates, which, like the thesis', cover the 25 games of Table 5.1.
+stratified bootstrap (runs resampled with replacement within each task, percentile interval). For equal run counts
+per task the statistics are those of rliable's ``aggregate_*`` functions (tested). The bootstrap is an own numpy
+implementation (:func:`stratified_bootstrap_ci`) because rliable's (``rliable.library.get_interval_estimates``,
+rliable 1.2) does not run with the current releases of its dependency ``arch``: arch 7.2 fails to import under
+pandas 3, and arch 8 rejects the ``random_state`` keyword that rliable passes. With pandas 2.3 and arch 7.2, the two
+gave the same 95 % intervals of the mean, median, IQM and optimality gap to within 0.003 (5 runs x 10 tasks, 20,000
+replicates each); ours also takes tasks with different numbers of runs. Games without a thesis row (UpNDown) are
+listed but left out of the aggregates, which, like the thesis', cover the 25 games of Table 5.1.
 
 Command line::
 

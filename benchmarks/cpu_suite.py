@@ -52,6 +52,7 @@ import json
 import os
 import pathlib
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import asdict, astuple, dataclass, field, fields
 from typing import Any
@@ -272,23 +273,41 @@ def finished_runs(path: str | pathlib.Path) -> dict[tuple[Any, ...], dict[str, A
 
     :param path: the ``runs.jsonl`` file; a missing file means no finished runs
     :return: run key -> record
-    :raises ValueError: a line that is not a JSON record of a run, naming the file and the line number
+    :raises ValueError: a line that is not a JSON record of a run, naming the file and the line number (a last line
+        without its newline, an append cut short by a crash, is left out with a warning: that run is done again)
     """
     path = pathlib.Path(path)
     if not path.is_file():
         return {}
     names = [f.name for f in fields(SuiteRun)]
     done: dict[tuple[Any, ...], dict[str, Any]] = {}
-    for number, line in enumerate(path.read_text().splitlines(), 1):
+    text = path.read_text()
+    lines = text.splitlines()
+    for number, line in enumerate(lines, 1):
         if not line.strip():
             continue
         try:
             record = json.loads(line)
             run = SuiteRun(**{name: record[name] for name in names})
         except (json.JSONDecodeError, KeyError, TypeError) as error:
+            if number == len(lines) and not text.endswith("\n"):
+                warnings.warn(
+                    f"{path}:{number} is an unfinished record (cut short by a crash?); left out", stacklevel=2
+                )
+                continue
             raise ValueError(f"{path}:{number} is not a cpu_suite run record ({error}): {line[:80]!r}") from error
         done[run_key(run)] = record
     return done
+
+
+def drop_unfinished_line(path: pathlib.Path) -> None:
+    """Cut a last line without its newline (an append that a crash cut short) from ``runs.jsonl`` before appending."""
+    if not path.is_file():
+        return
+    data = path.read_bytes()
+    if data and not data.endswith(b"\n"):
+        with path.open("r+b") as handle:
+            handle.truncate(data.rfind(b"\n") + 1)
 
 
 def run_key(run: SuiteRun) -> tuple[Any, ...]:
@@ -489,13 +508,16 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
             print(f"--report: {len(runs) - len(records)} of {len(runs)} runs not in {log}, left out", flush=True)
     else:
         done = finished_runs(log) if args.resume else {}
+        drop_unfinished_line(log)
         todo = [run for run in runs if run_key(run) not in done]
         if done:
             print(f"--resume: {len(runs) - len(todo)} of {len(runs)} runs already in {log}", flush=True)
 
         def record_run(record: dict[str, Any]) -> None:
-            with log.open("a") as handle:
+            with log.open("a") as handle:  # one line per run, on disk before the next run starts
                 handle.write(json.dumps(record) + "\n")
+                handle.flush()
+                os.fsync(handle.fileno())
             report(record)
 
         fresh = iter(execute(run_suite_run, todo, workers=args.workers, report=record_run))

@@ -1,8 +1,9 @@
 """Demo: train HIEROS on CartPole-v1 and plot its learning curve (``make demo`` runs ``python -m benchmarks.demo``).
 
-Trains the given preset (default ``small``) for ``--steps`` environment steps, evaluating the deterministic policy
-every ``--eval-freq`` steps on a separate environment (SB3 ``EvalCallback``, ``--eval-episodes`` episodes), and
-writes to ``--out`` (default ``results/demo/``):
+Trains the given preset (default ``small``) for ``--steps`` environment steps with SB3's progress bar
+(``--no-progress-bar`` to hide it), evaluating the deterministic policy every ``--eval-freq`` steps on a separate
+environment (SB3 ``EvalCallback``, ``--eval-episodes`` episodes). Its log lines are flushed as they are printed, so
+output redirected to a file shows them at once. It writes to ``--out`` (default ``results/demo/``):
 
 * ``learning_curve.png``: mean and standard deviation of the evaluation return over the training steps;
 * ``evaluations.npz``: SB3's evaluation log (``timesteps``, ``results``, ``ep_lengths``);
@@ -10,8 +11,12 @@ writes to ``--out`` (default ``results/demo/``):
 * ``progress.csv``: the training log (``rollout/*``, ``time/*``, ``train/level{i}/*``);
 * ``model.zip``: the trained model (``HIEROS.load``);
 * ``subgoals/subgoals_<step>_env0.png``: every ``--subgoal-every`` steps (default 2000), the subgoal of every level
-  above 0 decoded into the observation space and plotted against the real observation
-  (:class:`~sb3_hieros.SubgoalDecodeCallback`, added by :func:`extra_callbacks`).
+  above 0 decoded into the observation space, as bars per observation entry next to the real observation and, for
+  classic-control tasks, as the frame the env draws for it (:class:`~sb3_hieros.SubgoalDecodeCallback`, added by
+  :func:`extra_callbacks`).
+
+``--report DIR`` trains nothing: it redraws ``DIR/learning_curve.png`` from the run's ``evaluations.npz`` and
+``final_eval.json`` (``docs/demo/`` holds such a run).
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import sys
 import time
 
 import numpy as np
@@ -69,6 +75,18 @@ def plot_learning_curve(evaluations: pathlib.Path, path: pathlib.Path, title: st
     plt.close(fig)
 
 
+def report(out: pathlib.Path) -> dict:
+    """Redraw ``learning_curve.png`` of a finished demo run from its ``evaluations.npz`` and ``final_eval.json``.
+
+    :param out: the run's output directory
+    :return: the run's summary (``final_eval.json``)
+    """
+    summary = json.loads((out / "final_eval.json").read_text())
+    title = f"HIEROS ({summary['preset']}) on {summary['env']}"
+    plot_learning_curve(out / "evaluations.npz", out / "learning_curve.png", title)
+    return summary
+
+
 def main(argv: list[str] | None = None) -> dict:
     """Train, evaluate, plot and save (see the module docstring).
 
@@ -89,7 +107,17 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument(
         "--threads", type=int, default=None, help="torch CPU threads (default: torch's, i.e. OMP_NUM_THREADS)"
     )
+    parser.add_argument(
+        "--progress-bar", action=argparse.BooleanOptionalAction, default=True, help="show SB3's progress bar"
+    )
+    parser.add_argument(
+        "--report", type=pathlib.Path, default=None, help="train nothing: redraw DIR/learning_curve.png from its run"
+    )
     args = parser.parse_args(argv)
+    if args.report is not None:
+        return report(args.report)
+    if hasattr(sys.stdout, "reconfigure"):
+        sys.stdout.reconfigure(line_buffering=True)  # every log line reaches a redirected file at once
     if args.threads is not None:
         th.set_num_threads(args.threads)
 
@@ -111,7 +139,17 @@ def main(argv: list[str] | None = None) -> dict:
         verbose=1,
     )
     start = time.perf_counter()
-    model.learn(args.steps, callback=[evaluation, *extra_callbacks(out, args.subgoal_every)])
+    n_params = sum(p.numel() for p in model.policy.parameters())
+    print(
+        f"{n_params / 1e6:.2f}M parameters; random actions for the first {model.learning_starts} steps, then training; "
+        f"an evaluation every {args.eval_freq} steps",
+        flush=True,
+    )
+    model.learn(
+        args.steps,
+        callback=[evaluation, *extra_callbacks(out, args.subgoal_every)],
+        progress_bar=args.progress_bar,
+    )
     wall = time.perf_counter() - start
     model.save(out / "model.zip")
 

@@ -11,9 +11,14 @@ trained with the zoo's total budget (``n_timesteps``), so their linear schedules
 run; the milestones only decide when to evaluate and stop. HIEROS takes ``--hieros-kwargs`` (JSON) on top of
 ``preset="small"``.
 
-Example (the issue's benchmark)::
+``--report FILE ...`` trains nothing: it merges the runs of earlier ``results.json`` files and writes the table
+(``table.md``) and figure of them into ``--out``; HIEROS runs of a file with ``hieros_kwargs`` are labelled with them.
+
+Examples::
 
     python -m benchmarks.sample_efficiency --seeds 0 1 2 --workers 2
+    python -m benchmarks.sample_efficiency --report docs/sample_efficiency/small_preset.json \
+        docs/sample_efficiency/ppo_dqn.json --out docs/sample_efficiency
 """
 
 from __future__ import annotations
@@ -162,7 +167,6 @@ def plot(runs: list[dict], table: dict, path: pathlib.Path) -> None:
                 ax.plot(r["steps"], r["returns"], color=color, alpha=0.3, lw=1)
         steps = sorted(rows)
         ax.plot(steps, [rows[s][0] for s in steps], color=color, marker="o", lw=2, label=algo)
-    ax.axhline(450, color="grey", ls="--", lw=1, label="goal 450")
     ax.set_xlabel("environment steps")
     ax.set_ylabel("evaluation return (deterministic)")
     ax.set_title(f"{ENV_ID}: HIEROS small vs rl-zoo PPO / DQN")
@@ -171,6 +175,67 @@ def plot(runs: list[dict], table: dict, path: pathlib.Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def markdown_table(runs: list[dict], milestones: list[int]) -> str:
+    """Markdown table: per algorithm and milestone the mean +- std over seeds (and every seed's value), and the mean
+    wall time of a run.
+
+    :param runs: records of :func:`run_one`
+    :param milestones: the step counts of the columns
+    :return: the table
+    """
+    table = summarise(runs, milestones)
+    lines = ["| algorithm | seeds | " + " | ".join(f"{m // 1000}k steps" for m in milestones) + " | wall s / run |"]
+    lines.append("|---|---:|" + "---:|" * (len(milestones) + 1))
+    for algo, rows in table.items():
+        mine = [r for r in runs if r["algo"] == algo]
+        cells = []
+        for m in milestones:
+            seeds = ", ".join(f"{r['returns'][r['steps'].index(m)]:.1f}" for r in mine if m in r["steps"])
+            cells.append(f"{rows[m][0]:.1f} +- {rows[m][1]:.1f} ({seeds})" if m in rows else "-")
+        wall = np.mean([r["wall_s"] for r in mine])
+        lines.append(f"| {algo} | {len(mine)} | " + " | ".join(cells) + f" | {wall:.0f} |")
+    return "\n".join(lines)
+
+
+def load_runs(paths: list[pathlib.Path]) -> tuple[list[dict], list[int]]:
+    """The runs of several ``results.json`` files and the union of their milestones.
+
+    HIEROS runs of a file whose ``hieros_kwargs`` are not empty get the algorithm label ``hieros <kwargs as JSON>``.
+
+    :param paths: ``results.json`` files of this script
+    :return: ``(runs, milestones)``
+    """
+    runs: list[dict] = []
+    milestones: set[int] = set()
+    for path in paths:
+        data = json.loads(pathlib.Path(path).read_text())
+        if not isinstance(data, dict) or not {"runs", "milestones"} <= set(data):
+            raise ValueError(f"{path} is not a results.json of benchmarks.sample_efficiency (no 'runs'/'milestones')")
+        kwargs = data.get("hieros_kwargs") or {}
+        for run in data["runs"]:
+            label = run["algo"]
+            if label == "hieros" and kwargs:
+                label = f"hieros {json.dumps(kwargs, separators=(', ', ': '))}"
+            runs.append({**run, "algo": label})
+        milestones.update(int(m) for m in data["milestones"])
+    return runs, sorted(milestones)
+
+
+def report(paths: list[pathlib.Path], out: pathlib.Path) -> str:
+    """Table and figure of recorded runs, without training (``--report``).
+
+    :param paths: ``results.json`` files
+    :param out: folder for ``table.md`` and ``sample_efficiency.png``
+    :return: the table
+    """
+    runs, milestones = load_runs(paths)
+    markdown = markdown_table(runs, milestones)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "table.md").write_text(markdown + "\n")
+    plot(runs, summarise(runs, milestones), out / "sample_efficiency.png")
+    return markdown
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -187,7 +252,13 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--workers", type=int, default=1, help="parallel processes (one torch thread each)")
     parser.add_argument("--hieros-kwargs", default="{}", help="JSON dict of extra HIEROS keywords")
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("results/sample_efficiency"))
+    parser.add_argument(
+        "--report", nargs="+", type=pathlib.Path, default=None, help="results.json files: table and figure only"
+    )
     args = parser.parse_args(argv)
+    if args.report:
+        print(report(args.report, args.out))
+        return summarise(*load_runs(args.report))
     milestones = sorted(set(args.milestones))
     if not milestones or milestones[0] <= 0:
         raise ValueError(f"--milestones must be positive step counts, got {args.milestones}")
@@ -209,13 +280,7 @@ def main(argv: list[str] | None = None) -> dict:
             evals = dict(zip(run["steps"], run["returns"], strict=True))
             print(f"{run['algo']} seed {run['seed']}: {evals} ({run['wall_s']} s)")
     table = summarise(runs, milestones)
-    header = "| algorithm | " + " | ".join(f"{m // 1000}k steps" for m in milestones) + " | wall s / run |"
-    print(header)
-    print("|" + "---|" * (len(milestones) + 2))
-    for algo, rows in table.items():
-        wall = np.mean([r["wall_s"] for r in runs if r["algo"] == algo])
-        cells = [f"{rows[m][0]:.1f} +- {rows[m][1]:.1f}" if m in rows else "-" for m in milestones]
-        print(f"| {algo} | " + " | ".join(cells) + f" | {wall:.0f} |")
+    print(markdown_table(runs, milestones))
     (args.out / "results.json").write_text(
         json.dumps({"runs": runs, "hieros_kwargs": hieros_kwargs, "milestones": milestones}, indent=2) + "\n"
     )

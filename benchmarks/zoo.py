@@ -30,13 +30,14 @@ processes that imported this module: with ``--vec-env subproc`` they are unknown
 
 from __future__ import annotations
 
+import json
 import pathlib
 import sys
 import zipfile
 from typing import Any
 
 import gymnasium as gym
-from stable_baselines3.common.save_util import json_to_data, open_path
+from stable_baselines3.common.save_util import open_path
 
 from benchmarks.suites import DMC_VISION_TASKS, make_env
 from sb3_hieros import HIEROS, get_preset
@@ -115,7 +116,7 @@ class EnjoyHIEROS(HIEROS):
         """
         if "buffer_size" not in kwargs:
             with zipfile.ZipFile(open_path(path, "r", verbose=0, suffix="zip")) as archive:
-                data = json_to_data(archive.read("data").decode())
+                data = json.loads(archive.read("data").decode())  # plain values only: nothing is unpickled
             length = data.get("batch_length")  # saves of models built when it was a constructor keyword
             if length is None:
                 length = get_preset(data["preset"]).replace(**data.get("config_overrides", {})).batch_length

@@ -1,7 +1,9 @@
 """SB3 callbacks that show what HIEROS plans and what its world model imagines.
 
 * :class:`SubgoalDecodeCallback`: the current subgoal of every level above 0, decoded down to the environment's
-  observation space (thesis 4.3.2, last paragraph; Figs 5.5, 5.6, 5.9), next to the real observation.
+  observation space (thesis 4.3.2, last paragraph; Figs 5.5, 5.6, 5.9), next to the real observation: images as a
+  grid, vectors as labelled bars per entry and, where the env can draw a given state (gymnasium's classic-control
+  tasks, :class:`ClassicControlRenderer`, or a user's ``renderer``), as the frame of the subgoal beside the real one.
 * :class:`ImaginationCallback`: a recent real chunk of level 0's replay against the world model's open-loop
   imagination with the recorded actions, and the per-step prediction error (thesis Fig. 5.1).
 
@@ -30,10 +32,13 @@ import contextlib
 import os
 import pathlib
 import random
+import textwrap
 import warnings
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
@@ -43,12 +48,139 @@ from sb3_hieros.agent.world_model import LatentState, WorldModel
 from sb3_hieros.buffers import SequenceReplayBuffer
 from sb3_hieros.type_aliases import Observation
 
-__all__ = ["ImaginationCallback", "SubgoalDecodeCallback", "imagine_open_loop", "recent_window"]
+__all__ = [
+    "CLASSIC_CONTROL_OBSERVATIONS",
+    "ClassicControlRenderer",
+    "ImaginationCallback",
+    "ObservationLayout",
+    "SubgoalDecodeCallback",
+    "imagine_open_loop",
+    "observation_labels",
+    "recent_window",
+]
 
 #: Where a callback writes its PNGs (None: TensorBoard only).
 SaveDir = str | os.PathLike | None
 #: Observation entries of at most this many dimensions are shown in the vector plots of ImaginationCallback.
 MAX_PLOTTED_DIMS = 16
+
+#: A function that draws one observation (as the env gives it, a dict of arrays for Dict spaces) as an RGB frame
+#: (H, W, 3) uint8.
+Renderer = Callable[[Any], np.ndarray]
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# What the entries of a vector observation mean (gymnasium's classic-control tasks)
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ObservationLayout:
+    """The entries of a task's observation vector and how to turn an observation into the ``env.unwrapped.state``
+    that the task's ``render()`` draws.
+
+    :param labels: name of every entry of the observation vector
+    :param state_from_obs: observation (D,) -> the env's ``state`` array
+    """
+
+    labels: tuple[str, ...]
+    state_from_obs: Callable[[np.ndarray], np.ndarray]
+
+
+def _same(obs: np.ndarray) -> np.ndarray:
+    return obs
+
+
+def _pendulum_state(obs: np.ndarray) -> np.ndarray:
+    return np.array([np.arctan2(obs[1], obs[0]), obs[2]])  # (cos, sin, velocity) -> (angle, velocity)
+
+
+def _acrobot_state(obs: np.ndarray) -> np.ndarray:
+    return np.array([np.arctan2(obs[1], obs[0]), np.arctan2(obs[3], obs[2]), obs[4], obs[5]])
+
+
+#: gymnasium classic-control task name (the id without version) -> the layout of its observation vector.
+CLASSIC_CONTROL_OBSERVATIONS: dict[str, ObservationLayout] = {
+    "CartPole": ObservationLayout(("cart position", "cart velocity", "pole angle", "pole angular velocity"), _same),
+    "MountainCar": ObservationLayout(("car position", "car velocity"), _same),
+    "MountainCarContinuous": ObservationLayout(("car position", "car velocity"), _same),
+    "Pendulum": ObservationLayout(("cos(angle)", "sin(angle)", "angular velocity"), _pendulum_state),
+    "Acrobot": ObservationLayout(
+        ("cos(joint 1)", "sin(joint 1)", "cos(joint 2)", "sin(joint 2)", "joint 1 velocity", "joint 2 velocity"),
+        _acrobot_state,
+    ),
+}
+
+
+def _task_name(env_id: str) -> str:
+    """``"CartPole-v1"`` -> ``"CartPole"`` (namespace and version dropped; an id gymnasium cannot parse as it is)."""
+    try:
+        return gym.envs.registration.parse_env_id(env_id)[1]
+    except gym.error.Error:
+        return env_id
+
+
+def observation_labels(
+    key: str, size: int, env_id: str | None = None, labels: Sequence[str] | None = None
+) -> list[str]:
+    """Names of the ``size`` entries of a vector observation: ``labels`` if given, else those of a classic-control
+    task (:data:`CLASSIC_CONTROL_OBSERVATIONS`) of the right size, else ``obs[i]`` (``<key>[i]`` in Dict spaces).
+
+    :param key: the observation key (``"obs"`` for non-Dict spaces)
+    :param size: number of entries
+    :param env_id: gymnasium id of the env, or None
+    :param labels: names given by the user, or None
+    :return: one name per entry
+    """
+    if labels is not None:
+        if isinstance(labels, str) or len(labels) != size:
+            raise ValueError(f"labels for observation {key!r} must name its {size} entries, got {labels!r}")
+        return [str(label) for label in labels]
+    layout = CLASSIC_CONTROL_OBSERVATIONS.get(_task_name(env_id)) if env_id else None
+    if key == "obs" and layout is not None and len(layout.labels) == size:
+        return list(layout.labels)
+    return [f"{key}[{i}]" for i in range(size)]
+
+
+class ClassicControlRenderer:
+    """Draws an observation of a gymnasium classic-control task as the frame the task renders for that state: sets
+    ``env.unwrapped.state`` of an ``rgb_array`` env of the same id and calls ``render()`` (needs pygame).
+
+    On a machine without a display (neither ``DISPLAY`` nor ``WAYLAND_DISPLAY`` set) it sets ``SDL_VIDEODRIVER=dummy``
+    unless the variable is already set: the frames are drawn off-screen, and SDL would otherwise print an error
+    about the missing display.
+
+    :param env_id: gymnasium id of a task in :data:`CLASSIC_CONTROL_OBSERVATIONS`, e.g. ``"CartPole-v1"``
+    """
+
+    def __init__(self, env_id: str) -> None:
+        name = _task_name(env_id) if isinstance(env_id, str) else None
+        if name not in CLASSIC_CONTROL_OBSERVATIONS:
+            raise ValueError(
+                f"env_id must be a classic-control task, one of {sorted(CLASSIC_CONTROL_OBSERVATIONS)}, got {env_id!r}"
+            )
+        self.layout = CLASSIC_CONTROL_OBSERVATIONS[name]
+        if "DISPLAY" not in os.environ and "WAYLAND_DISPLAY" not in os.environ:
+            os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+        self.env = gym.make(env_id, render_mode="rgb_array")
+        self.env.reset(seed=0)
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """The frame of one observation.
+
+        :param obs: observation (D,) in the env's units
+        :return: (H, W, 3) uint8 frame
+        """
+        vector = np.asarray(obs, dtype=np.float64).reshape(-1)
+        if vector.size != len(self.layout.labels):
+            raise ValueError(f"expected an observation of {len(self.layout.labels)} entries, got shape {np.shape(obs)}")
+        self.env.unwrapped.state = self.layout.state_from_obs(vector)  # type: ignore[attr-defined]
+        return np.asarray(self.env.render(), dtype=np.uint8)
+
+    def close(self) -> None:
+        """Close the env used for drawing."""
+        self.env.close()
+
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Decoding and imagination (no RL bookkeeping)
@@ -280,28 +412,52 @@ class SubgoalDecodeCallback(_PeriodicDrawingCallback):
     """Every ``every`` environment steps, decode the current subgoal of every level above 0 into the environment's
     observation space (:meth:`HIEROS.decoded_subgoals`, thesis 4.3.2) and show it next to the real observation.
 
-    One picture per shown env: images as a grid with one column per level (observation | level-1 subgoal |
-    level-2 subgoal ...) and one row per image key; vector observations as a plot of the decoded vectors against
-    the real one (all entries of the flattened vector). The real observation is the one the hierarchy has just
-    encoded (:meth:`HIEROS.decoded_subgoals`, normalised under VecNormalize like the decoded ones). PNGs are named
-    ``subgoals_<step>_env<j>.png``, TensorBoard tags ``subgoals/env<j>``. A one-level model has no subgoals: the
-    callback warns once and does nothing.
+    One picture per shown env, with one column per level (observation | level-1 subgoal | level-2 subgoal ...):
+    image observations as a grid with one row per image key (thesis Fig. 5.5); vector observations as bars per entry,
+    labelled with the entry's name (``labels``, else :data:`CLASSIC_CONTROL_OBSERVATIONS` for gymnasium's
+    classic-control tasks, else ``obs[i]``), and, when a ``renderer`` draws states, a row of frames: the real state
+    and every decoded subgoal as the env would show them. The real observation is the one the hierarchy has just
+    encoded (:meth:`HIEROS.decoded_subgoals`, normalised under VecNormalize like the decoded ones; the bars show these
+    values, the renderer gets them in the env's units). PNGs are named ``subgoals_<step>_env<j>.png``, TensorBoard tags
+    ``subgoals/env<j>``. A one-level model has no subgoals: the callback warns once and does nothing.
 
     :param every: environment steps between two pictures
     :param n_envs_shown: how many envs (the first ones) to show; at most the model's ``n_envs``
     :param save_dir: directory for the PNGs, or None
     :param tensorboard: also write to the logger's TensorBoard output
+    :param labels: names of the entries of a vector observation (a sequence for a Box space, a dict key -> sequence
+        for Dict spaces), or None for the known names of classic-control tasks and ``obs[i]`` otherwise
+    :param renderer: ``"auto"`` draws the frames of gymnasium's classic-control tasks
+        (:class:`ClassicControlRenderer`; without pygame it warns once and shows the bars only); a callable draws
+        one observation (in the env's units; a dict for Dict spaces) as an (H, W, 3) uint8 frame; None shows no
+        frames. Only for observation spaces without images.
     :param verbose: 0 silent, 1 prints the written files
     """
 
     def __init__(
-        self, every: int, n_envs_shown: int = 1, save_dir: SaveDir = None, tensorboard: bool = True, verbose: int = 0
+        self,
+        every: int,
+        n_envs_shown: int = 1,
+        save_dir: SaveDir = None,
+        tensorboard: bool = True,
+        labels: Sequence[str] | Mapping[str, Sequence[str]] | None = None,
+        renderer: Renderer | str | None = "auto",
+        verbose: int = 0,
     ) -> None:
         super().__init__(every, save_dir, tensorboard, verbose)
         if isinstance(n_envs_shown, bool) or not isinstance(n_envs_shown, int | np.integer) or n_envs_shown < 1:
             raise ValueError(f"n_envs_shown must be a positive int, got {n_envs_shown!r}")
+        if isinstance(labels, str) or not (labels is None or isinstance(labels, Sequence | Mapping)):
+            raise ValueError(f"labels must be a sequence of names, a dict key -> names, or None; got {labels!r}")
+        if not (renderer is None or renderer == "auto" or callable(renderer)):
+            raise ValueError(f"renderer must be 'auto', a callable or None, got {renderer!r}")
         self.n_envs_shown = int(n_envs_shown)
+        self.labels = labels
+        self.renderer = renderer
         self._warned = False
+        #: observation key -> the names of its entries (set when training starts)
+        self.entry_labels: dict[str, list[str]] = {}
+        self._state_renderer: Renderer | None = None
 
     def _init_callback(self) -> None:
         super()._init_callback()
@@ -316,6 +472,52 @@ class SubgoalDecodeCallback(_PeriodicDrawingCallback):
                 stacklevel=2,
             )
             self._warned = True
+        spec = self.model.policy.hierarchy.levels[0].world_model.spec
+        env_id = self._env_id()
+        given = self.labels
+        if spec.is_dict and given is not None and not isinstance(given, Mapping):
+            raise ValueError(f"labels for a Dict observation space must be a dict key -> names, got {given!r}")
+        if not spec.is_dict and isinstance(given, Mapping):
+            raise ValueError(f"labels for a Box observation space must be a sequence of names, got {given!r}")
+        if isinstance(given, Mapping) and set(given) - set(spec.vector_keys):
+            raise ValueError(
+                f"labels name keys {sorted(set(given) - set(spec.vector_keys))} that are not vector keys "
+                f"of the observation space; vector keys: {spec.vector_keys}"
+            )
+        self.entry_labels = {}
+        for key in spec.vector_keys:
+            names = given.get(key) if isinstance(given, Mapping) else given
+            size = int(np.prod(spec.shapes[key]))
+            self.entry_labels[key] = observation_labels(key, size, env_id, names)
+        if isinstance(self._state_renderer, ClassicControlRenderer):
+            self._state_renderer.close()  # a previous learn() call's
+        self._state_renderer = None if spec.image_keys else self._make_renderer(env_id)
+
+    def _env_id(self) -> str | None:
+        """The gymnasium id of the training env (its first sub-env), or None when it has none."""
+        try:
+            spec = self.training_env.get_attr("spec", [0])[0]
+        except (AttributeError, IndexError):
+            return None
+        return getattr(spec, "id", None)
+
+    def _make_renderer(self, env_id: str | None) -> Renderer | None:
+        if self.renderer is None or callable(self.renderer):
+            return self.renderer  # type: ignore[return-value]
+        if env_id is None or _task_name(env_id) not in CLASSIC_CONTROL_OBSERVATIONS:
+            return None
+        try:
+            renderer = ClassicControlRenderer(env_id)
+            renderer.env.render()  # pygame is imported on the first render
+        except (gym.error.DependencyNotInstalled, ImportError) as error:
+            warnings.warn(
+                f"SubgoalDecodeCallback: {env_id} cannot render without pygame ({error}); the pictures show bars "
+                "only. pip install pygame (in sb3-hieros[extra]) for the frames",
+                UserWarning,
+                stacklevel=2,
+            )
+            return None
+        return renderer
 
     def _draw(self) -> None:
         model = self.model
@@ -328,10 +530,29 @@ class SubgoalDecodeCallback(_PeriodicDrawingCallback):
         decoded = [_as_numpy_dict(obs, keys, spec.is_dict) for obs in subgoals]
         real = _as_numpy_dict(observation, keys, spec.is_dict)
         for env in range(self.n_envs_shown):
+            frames = None if self._state_renderer is None else [self._frame(obs, env, spec) for obs in [real, *decoded]]
             image = self._picture(
-                env, spec.image_keys, spec.vector_keys, real, decoded, f"step {self.num_timesteps}, env {env}"
+                env,
+                spec.image_keys,
+                spec.vector_keys,
+                real,
+                decoded,
+                f"step {self.num_timesteps}, env {env}",
+                self.entry_labels,
+                frames,
             )
             self._write_image(f"subgoals/env{env}", image, f"subgoals_{self.num_timesteps:09d}_env{env}.png")
+
+    def _frame(self, obs: dict[str, np.ndarray], env: int, spec: Any) -> np.ndarray:
+        """The renderer's frame of one env's observation, taken back to the env's units under VecNormalize."""
+        assert self._state_renderer is not None
+        one: Any = {key: value[env].reshape(spec.shapes[key]) for key, value in obs.items()}
+        if not spec.is_dict:
+            one = one[next(iter(one))]
+        normalizer = self.model.get_vec_normalize_env()
+        if normalizer is not None:
+            one = normalizer.unnormalize_obs(one)
+        return np.asarray(self._state_renderer(one), dtype=np.uint8)
 
     @staticmethod
     def _picture(
@@ -341,16 +562,34 @@ class SubgoalDecodeCallback(_PeriodicDrawingCallback):
         real: dict[str, np.ndarray],
         decoded: list[dict[str, np.ndarray]],
         title: str,
+        entry_labels: Mapping[str, Sequence[str]] | None = None,
+        frames: list[np.ndarray] | None = None,
     ) -> np.ndarray:
-        """One env's picture: a row of images per image key, a plot per vector key."""
+        """One env's picture: a row of images per image key, a bar chart per vector key, a row of rendered frames.
+
+        :param env: index of the env
+        :param image_keys: keys of the image entries
+        :param vector_keys: keys of the vector entries
+        :param real: key -> (n_envs, ...) real observation
+        :param decoded: per level above 0, key -> (n_envs, ...) decoded subgoal
+        :param title: title suffix
+        :param entry_labels: key -> names of the vector entries (default ``obs[i]`` / ``<key>[i]``)
+        :param frames: rendered frames of the real observation and of every decoded subgoal, or None
+        :return: (H, W, 3) uint8 picture
+        """
         columns = 1 + len(decoded)
-        rows = len(image_keys) + len(vector_keys)
-        figure = _new_figure(max(2.2 * columns, 4.5), 2.4 * rows + 0.4)
-        grid = figure.add_gridspec(rows, columns)
-        labels = ["observation"] + [f"level-{i} subgoal" for i in range(1, columns)]
+        names = ["observation"] + [f"level-{i} subgoal" for i in range(1, columns)]
+        widest = max([real[key][env].size for key in vector_keys], default=0)
+        figure_width = min(max(2.2 * columns, 4.5, 0.9 * widest * (1 + 0.25 * columns)), 16.0)
+        heights = [2.4] * len(image_keys) + [2.8] * len(vector_keys)
+        if frames is not None:  # one frame per column at the frame's aspect ratio, plus its title
+            height, width = frames[0].shape[:2]
+            heights.append(min(0.9 * figure_width / columns * height / width, 3.5) + 0.3)
+        figure = _new_figure(figure_width, sum(heights) + 0.5)
+        grid = figure.add_gridspec(len(heights), columns, height_ratios=heights)
         for row, key in enumerate(image_keys):
             panels = [real[key][env]] + [d[key][env] for d in decoded]
-            for col, (panel, label) in enumerate(zip(panels, labels, strict=True)):
+            for col, (panel, label) in enumerate(zip(panels, names, strict=True)):
                 ax = figure.add_subplot(grid[row, col])
                 ax.imshow(_display_image(panel), interpolation="nearest")
                 ax.set_xticks([])
@@ -358,14 +597,27 @@ class SubgoalDecodeCallback(_PeriodicDrawingCallback):
                 ax.set_title(label if len(image_keys) == 1 else f"{label}\n[{key}]", fontsize=9)
         for offset, key in enumerate(vector_keys):
             ax = figure.add_subplot(grid[len(image_keys) + offset, :])
-            x = np.arange(real[key][env].size)
-            ax.plot(x, real[key][env].reshape(-1), "o-", color="black", label="observation", linewidth=2)
-            for i, d in enumerate(decoded, start=1):
-                ax.plot(x, d[key][env].reshape(-1), "s--", label=f"level-{i} subgoal (decoded)", alpha=0.8)
-            ax.set_xlabel("observation entry" if key == "obs" else f"entry of {key!r}")
-            ax.set_ylabel("value")
-            ax.grid(alpha=0.3)
+            values = [real[key][env].reshape(-1)] + [d[key][env].reshape(-1) for d in decoded]
+            x = np.arange(values[0].size)
+            bar = 0.8 / columns  # bar width: one group of bars per entry
+            for i, (value, name) in enumerate(zip(values, names, strict=True)):
+                color = "black" if i == 0 else f"C{i - 1}"
+                label = name if i == 0 else f"{name} (decoded)"
+                ax.bar(x + (i - (columns - 1) / 2) * bar, value, bar, color=color, alpha=0.85, label=label)
+            labels = (entry_labels or {}).get(key) or [f"{key}[{i}]" for i in range(x.size)]
+            labels = [textwrap.fill(label, 14) for label in labels]  # long names on two lines
+            ax.set_xticks(x, labels, rotation=0 if x.size <= 6 else 45, ha="center" if x.size <= 6 else "right")
+            ax.axhline(0.0, color="grey", linewidth=0.8)
+            ax.set_ylabel("value" if key == "obs" else f"{key!r} value")
+            ax.grid(alpha=0.3, axis="y")
             ax.legend(fontsize=8, loc="best")
+        if frames is not None:
+            for col, (frame, name) in enumerate(zip(frames, names, strict=True)):
+                ax = figure.add_subplot(grid[len(heights) - 1, col])
+                ax.imshow(frame)
+                ax.set_xticks([])
+                ax.set_yticks([])
+                ax.set_title(name if col == 0 else f"{name} (decoded)", fontsize=9)
         figure.suptitle(f"decoded subgoals, {title}", fontsize=10)
         figure.tight_layout()
         return _render(figure)

@@ -10,6 +10,8 @@ Every value not given explicitly to :class:`~sb3_hieros.HIEROS` comes from the c
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -22,6 +24,23 @@ EXTRINSIC_REWARD_LEVELS = ("all", "top")
 ACTION_ALIGNMENTS = ("previous", "current")
 REINFORCE_ADVANTAGES = ("normalized", "raw")
 TERMINAL_REWARDS = ("kept", "zeroed")
+
+
+def _check_types(obj: object) -> None:
+    """Raise ``ValueError`` naming the field and value when a value does not have its field's type: ``int`` fields
+    take integers (not floats such as ``16.0``, not bools), ``float`` fields finite real numbers (not NaN or inf, not
+    bools), ``bool`` fields bools. Runs first in every section's ``__post_init__``, so the range checks after it
+    compare numbers."""
+    for f in dataclasses.fields(obj):  # type: ignore[arg-type]
+        value, name = getattr(obj, f.name), f"{type(obj).__name__}.{f.name}"
+        if f.type == "int" and (isinstance(value, bool) or not isinstance(value, numbers.Integral)):
+            raise ValueError(f"{name} must be an integer, got {value!r} ({type(value).__name__})")
+        if f.type == "float" and (
+            isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value)
+        ):
+            raise ValueError(f"{name} must be a finite number, got {value!r} ({type(value).__name__})")
+        if f.type == "bool" and not isinstance(value, bool):
+            raise ValueError(f"{name} must be a bool, got {value!r} ({type(value).__name__})")
 
 
 def _check_positive(obj: object, *names: str) -> None:
@@ -110,6 +129,7 @@ class WorldModelConfig:
     warmup: int = 1000
 
     def __post_init__(self) -> None:
+        _check_types(self)
         _check_choice(self, "kind", WORLD_MODEL_KINDS)
         _check_choice(self, "deter_from", DETER_SOURCES)
         _check_positive(
@@ -185,6 +205,7 @@ class ActorCriticConfig:
     slow_critic_fraction: float = 0.02
 
     def __post_init__(self) -> None:
+        _check_types(self)
         _check_positive(self, "units", "layers", "actor_lr", "critic_lr", "eps", "grad_clip")
         _check_fraction(self, "discount", "lambda_", "unimix", "slow_critic_fraction")
         _check_choice(self, "imag_gradient", IMAG_GRADIENTS)
@@ -217,6 +238,7 @@ class SubgoalConfig:
     grad_clip: float = 100.0
 
     def __post_init__(self) -> None:
+        _check_types(self)
         _check_positive(self, "n_cat", "n_classes", "units", "layers", "lr", "eps", "grad_clip")
         if self.beta < 0:
             raise ValueError(f"SubgoalConfig.beta must be >= 0, got {self.beta!r}")
@@ -327,6 +349,7 @@ class HierosConfig:
     reference: ReferenceCompatConfig = field(default_factory=ReferenceCompatConfig)
 
     def __post_init__(self) -> None:
+        _check_types(self)
         _check_positive(
             self, "n_levels", "subgoal_interval", "batch_size", "batch_length", "imag_horizon", "train_ratio"
         )

@@ -26,9 +26,11 @@ dump) plus ``train/level{i}/n_updates`` and ``train/level{i}/skipped_updates``.
 Faults (see ``docs/resume.md`` for resuming a run): non-finite observations and rewards raise ``ValueError`` naming
 the env (and the Dict key) before they reach the replay or the networks; an optimiser step whose loss or gradient norm
 is not finite is skipped (``train/level{i}/nonfinite/<name>``), and ``max_nonfinite_updates`` such updates of one
-level in a row stop training with ``FloatingPointError``; ``load`` refuses truncated or corrupted files and saves of
-other algorithms with ``ValueError``; a warning estimates the replay memory of all levels before allocation when it
-exceeds the available memory.
+level in a row stop training with ``FloatingPointError``; ``save`` and ``save_replay_buffer`` write atomically with
+the sha256 of every member, ``load`` and ``load_replay_buffer`` refuse truncated, corrupted or changed files and saves
+of other algorithms with ``ValueError`` (a rejected replay leaves the model's replay as it was), and
+``load(..., safe=True)`` unpickles nothing (:mod:`sb3_hieros.save_util`); a warning estimates the replay memory of all
+levels before allocation when it exceeds the available memory.
 """
 
 from __future__ import annotations
@@ -36,8 +38,10 @@ from __future__ import annotations
 import io
 import pathlib
 import pickle
+import warnings
 import zipfile
 import zlib
+from collections.abc import Iterable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -50,11 +54,12 @@ from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
 from sb3_hieros.agent.hierarchy import HierarchyState
-from sb3_hieros.buffers import SequenceReplayBuffer
+from sb3_hieros.buffers import DictSequenceReplayBuffer, ETBSReplayBuffer, SequenceReplayBuffer
 from sb3_hieros.buffers.levels import HigherLevelRows, SubgoalTransitions, make_level_buffers
 from sb3_hieros.config import HierosConfig, get_preset
 from sb3_hieros.policies import CnnPolicy, HierosPolicy, MlpPolicy, MultiInputPolicy
-from sb3_hieros.save_util import check_hieros_save
+from sb3_hieros.replay_io import read_replay, write_replay
+from sb3_hieros.save_util import prepare_model_load, qualified_name, safe_load_values, write_archive
 from sb3_hieros.spaces import check_finite_observations, check_finite_step
 from sb3_hieros.type_aliases import Observation, SequenceSamples
 
@@ -84,7 +89,8 @@ class HIEROS(OffPolicyAlgorithm):
 
     :param policy: ``"MlpPolicy"``, ``"CnnPolicy"``, ``"MultiInputPolicy"`` or a :class:`HierosPolicy` subclass
     :param env: environment (gymnasium env, VecEnv or registered id)
-    :param preset: ``"paper"`` (thesis 4.6.3) or ``"small"`` (CPU); fills every value not given
+    :param preset: ``"paper"`` (thesis 4.6.3, for a GPU; built on a CPU it warns) or ``"small"`` (CPU); fills every
+        value not given
     :param learning_rate: world-model learning rate of every level (float or schedule); None = preset
     :param buffer_size: level-0 replay capacity in steps (level i: ``buffer_size // k**i``); None = preset
     :param learning_starts: environment steps of uniformly random actions before training; None = preset
@@ -189,6 +195,15 @@ class HIEROS(OffPolicyAlgorithm):
         self._nonfinite_streak: list[int] | None = None
         if _init_setup_model:
             self._setup_model()
+            if self.preset == "paper" and self.device.type == "cpu":
+                n_params = sum(p.numel() for p in self.policy.parameters())
+                warnings.warn(
+                    f"HIEROS builds the 'paper' preset (thesis 4.6.3, {n_params / 1e6:.1f}M parameters for this env; "
+                    "it is the default when preset is not given) on a CPU, where training it is very slow. On a CPU "
+                    'pass preset="small"; the paper preset is meant for a CUDA GPU (device="auto" picks one).',
+                    UserWarning,
+                    stacklevel=2,
+                )
 
     # ------------------------------------------------------------------------------------------------ setup
 
@@ -248,31 +263,26 @@ class HIEROS(OffPolicyAlgorithm):
         """
         return [self.replay_buffer, *getattr(self.replay_buffer, "higher_levels", [])]
 
-    def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
-        """Load the replay of every level (level 0's pickle carries the higher levels), see SB3.
+    def save_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase) -> None:
+        """Save the replay of every level without pickle (:mod:`sb3_hieros.replay_io`), atomically: a crash during the
+        save leaves the previous file at ``path`` intact (:mod:`sb3_hieros.save_util`).
 
-        :param path: pickle written by ``save_replay_buffer``
-        :param truncate_last_traj: passed to SB3 (only used by HER)
+        :param path: file (``.pkl`` appended when it has no suffix, as in SB3; the content is a zip) or binary file
         """
-        super().load_replay_buffer(path, truncate_last_traj)
-        assert self.config is not None
-        higher = getattr(self.replay_buffer, "higher_levels", None)
-        if not isinstance(self.replay_buffer, SequenceReplayBuffer) or not isinstance(higher, list):
-            raise ValueError(f"{path} does not hold a HIEROS replay (SequenceReplayBuffer with higher_levels)")
-        n_replays = self.policy.hierarchy.replay_levels
-        if len(higher) != n_replays - 1:
-            raise ValueError(
-                f"{path} holds the replay of {len(higher) + 1} levels, but this model has "
-                f"n_levels={self.config.n_levels} with {n_replays} replays "
-                f"(hierarchical_world_models={self.config.hierarchical_world_models})"
-            )
-        for buffer in self.level_buffers():
-            if buffer.n_envs != self.n_envs:
-                raise ValueError(
-                    f"{path} holds a replay of {buffer.n_envs} envs, but this model has n_envs={self.n_envs}"
-                )
-        for buffer in higher:
-            buffer.device = self.device
+        buffers = self.level_buffers()
+        write_archive(path, lambda target: write_replay(target, buffers), suffix="pkl")
+
+    def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
+        """Load the replay of every level, written by :meth:`save_replay_buffer` (or a legacy pickle, with a warning).
+
+        The file is checked against this model's buffers (levels, ``n_envs``, rows, every array's dtype and shape,
+        checksums) before anything is replaced; on ``ValueError`` the model's replay is unchanged.
+
+        :param path: the file or a binary file object
+        :param truncate_last_traj: unused (SB3's HER option)
+        """
+        buffers = read_replay(path, self.level_buffers())
+        self.replay_buffer = buffers[0]
 
     def _setup_learn(
         self,
@@ -481,7 +491,8 @@ class HIEROS(OffPolicyAlgorithm):
     ) -> SelfHIEROS:
         """Train for ``total_timesteps`` environment steps (SB3's ``learn``; default ``tb_log_name="HIEROS"``).
 
-        :param total_timesteps: environment steps (a lower bound: the loop finishes its vec-env step)
+        :param total_timesteps: environment steps (a lower bound: the loop finishes its vec-env step); a
+            ``UserWarning`` says when the run ends before ``learning_starts`` is passed, i.e. before the first update
         :param callback: SB3 callback(s)
         :param log_interval: dump the logs every ``log_interval`` episodes
         :param tb_log_name: tensorboard run name
@@ -489,6 +500,16 @@ class HIEROS(OffPolicyAlgorithm):
         :param progress_bar: show a progress bar (tqdm and rich)
         :return: self
         """
+        steps_at_end = total_timesteps + (0 if reset_num_timesteps else self.num_timesteps)
+        if steps_at_end <= self.learning_starts:
+            warnings.warn(
+                f"learn({total_timesteps}) ends at {steps_at_end} environment steps, before the first update: HIEROS "
+                f"acts at random and does not train during the first learning_starts={self.learning_starts} steps. "
+                f"Train for more than {self.learning_starts - (steps_at_end - total_timesteps)} steps or lower "
+                "learning_starts.",
+                UserWarning,
+                stacklevel=2,
+            )
         return super().learn(
             total_timesteps=total_timesteps,
             callback=callback,
@@ -509,14 +530,20 @@ class HIEROS(OffPolicyAlgorithm):
         custom_objects: dict[str, Any] | None = None,
         print_system_info: bool = False,
         force_reset: bool = True,
+        safe: bool = False,
         **kwargs: Any,
     ) -> SelfHIEROS:
         """SB3's ``load``, refusing files that are not an intact HIEROS save with a short ``ValueError``.
 
-        A truncated or corrupted zip, a zip without HIEROS's data, or a save of another algorithm (e.g. DQN) raise
-        ``ValueError`` before anything is built; a corrupted tensor file inside the zip raises ``ValueError`` with
-        torch's message instead of torch's traceback. An env whose spaces differ from the saved ones raises SB3's
-        ``ValueError``.
+        A truncated or corrupted zip, a member that does not match the checksum recorded at saving, a zip without
+        HIEROS's data, or a save of another algorithm (e.g. DQN) raise ``ValueError`` before anything is built; a
+        corrupted tensor file inside the zip raises ``ValueError`` with torch's message instead of torch's traceback.
+        An env whose spaces differ from the saved ones raises ``ValueError``.
+
+        SB3 keeps spaces, classes and schedules as pickles in the zip, and unpickling runs whatever code the file
+        names: load files you did not save yourself with ``safe=True``, which unpickles nothing (spaces from ``env``,
+        the policy class, learning rate and episode statistics from plain values of the file; the env is reset
+        before training goes on). Without it every pickled entry is unpickled once.
 
         :param path: zip file (``.zip`` may be omitted) or file-like object
         :param env: environment to attach (spaces must match the saved ones), or None
@@ -524,10 +551,25 @@ class HIEROS(OffPolicyAlgorithm):
         :param custom_objects: values replacing saved attributes (see SB3)
         :param print_system_info: print the system info of the save
         :param force_reset: reset the env before training continues (SB3: avoids unexpected behaviour)
+        :param safe: load without unpickling anything (``env`` required); for files from elsewhere
         :param kwargs: attributes to set on the loaded model (e.g. ``learning_starts=0``)
         :return: the model
         """
-        check_hieros_save(path, custom_objects)
+        env_spaces = None
+        if safe:
+            if env is None:
+                raise ValueError("HIEROS.load(..., safe=True) takes the spaces from the env: pass env=...")
+            env = cls._wrap_env(env, verbose=0)
+            env_spaces = (env.observation_space, env.action_space)
+        custom_objects = prepare_model_load(
+            path,
+            custom_objects,
+            safe,
+            env_spaces,
+            HierosPolicy,
+            {qualified_name(p): p for p in cls.policy_aliases.values()},  # type: ignore[misc]
+            {qualified_name(b): b for b in (SequenceReplayBuffer, DictSequenceReplayBuffer, ETBSReplayBuffer)},  # type: ignore[misc]
+        )
         try:
             return super().load(  # type: ignore[return-value]
                 path,
@@ -564,6 +606,24 @@ class HIEROS(OffPolicyAlgorithm):
             ("policy.hierarchy.levels." + k[len(old) :] if k.startswith(old) else k): v for k, v in params.items()
         }
         super().set_parameters(renamed, exact_match=exact_match, device=device)
+
+    def save(
+        self,
+        path: str | pathlib.Path | io.BufferedIOBase,
+        exclude: Iterable[str] | None = None,
+        include: Iterable[str] | None = None,
+    ) -> None:
+        """SB3's ``save``, written atomically (a crash during the save leaves the previous file at ``path`` intact)
+        with the checksum of every member and the plain values ``load(..., safe=True)`` needs
+        (:mod:`sb3_hieros.save_util`).
+
+        :param path: zip file (``.zip`` appended when it has no suffix) or binary file object
+        :param exclude: attributes not to save, besides the default ones
+        :param include: attributes to save although excluded by default
+        """
+        write_archive(
+            path, lambda target: super(HIEROS, self).save(target, exclude, include), "zip", safe_load_values(self)
+        )
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "config", "_hier", "_rows", "_subgoal0"]

@@ -251,8 +251,12 @@ class HierosPolicy(BasePolicy):
                     f"state entry {name!r} has shape {array.shape}, expected {expected} for an observation batch of "
                     f"{n_envs}"
                 )
-            if np.iscomplexobj(array) != ref.is_complex():
+            if np.iscomplexobj(array) != ref.is_complex() or (
+                not (ref.is_floating_point() or ref.is_complex()) and not np.issubdtype(array.dtype, np.integer)
+            ):
                 raise ValueError(f"state entry {name!r} has dtype {array.dtype}, expected {ref.dtype}")
+            if np.issubdtype(array.dtype, np.inexact) and not np.isfinite(array).all():
+                raise ValueError(f"state entry {name!r} contains NaN or inf; pass the state predict() returned")
             tensors.append(th.as_tensor(array, device=ref.device).to(ref.dtype))
         return self._unflatten(tensors)
 

@@ -2,13 +2,23 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
 
 pytest.importorskip("rl_zoo3", reason="the 'zoo' extra is not installed")
 
-from benchmarks.cpu_suite import TASKS, finished_runs, main, recorded_runs, run_key, suite_runs, zoo_hyperparams
+from benchmarks.cpu_suite import (
+    TASKS,
+    drop_unfinished_line,
+    finished_runs,
+    main,
+    recorded_runs,
+    run_key,
+    suite_runs,
+    zoo_hyperparams,
+)
 from benchmarks.sample_efficiency import ZOO_DQN, ZOO_PPO
 
 
@@ -94,3 +104,15 @@ def test_finished_runs_names_a_bad_line(tmp_path):
     log.write_text('{"task": "CartPole-v1"}\n')
     with pytest.raises(ValueError, match=r"runs\.jsonl:1 is not a cpu_suite run record"):
         finished_runs(log)
+
+
+def test_an_append_cut_short_is_left_out_and_cut(tmp_path):
+    """A crash during the append of a record leaves a last line without newline: it is left out and cut off."""
+    run = suite_runs(["CartPole-v1"], ["dqn"], [0], 64)[0]
+    log = tmp_path / "runs.jsonl"
+    whole = json.dumps(dataclasses.asdict(run)) + "\n"
+    log.write_text(whole + whole[:40])
+    with pytest.warns(UserWarning, match=r"runs\.jsonl:2 is an unfinished record"):
+        assert set(finished_runs(log)) == {run_key(run)}
+    drop_unfinished_line(log)
+    assert log.read_text() == whole

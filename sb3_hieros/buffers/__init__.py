@@ -46,7 +46,8 @@ The stream of a chunk is drawn in proportion to its number of valid chunk starts
 ``(stream, start)`` pair is equally likely with uniform selection. Random numbers come from numpy's
 **global** state (``np.random.random_sample``), as SB3's buffers draw from ``np.random``, so
 ``stable_baselines3.common.utils.set_random_seed`` makes sampling reproducible and the buffer holds no
-generator (it pickles cleanly for ``save_replay_buffer`` / ``load_replay_buffer``).
+generator: its state is plain arrays and numbers (``HIEROS.save_replay_buffer`` stores them without pickle,
+:mod:`sb3_hieros.replay_io`).
 
 :class:`ETBSReplayBuffer` selects the chunk start by insertion age with efficient time-balanced sampling
 (:mod:`sb3_hieros.etbs`, thesis section 4.5) instead of uniformly.
@@ -70,6 +71,11 @@ from sb3_hieros.buffers.sequence import (
 )
 from sb3_hieros.buffers.time_balanced import ETBS_BUFFER_MODES, ETBSReplayBuffer
 from sb3_hieros.type_aliases import SequenceSamples
+
+# The classes carry their public path: saved replays (sb3_hieros.replay_io) and safe loads name them by it.
+for _cls in (SequenceReplayBuffer, DictSequenceReplayBuffer, ETBSReplayBuffer):
+    _cls.__module__ = __name__
+del _cls
 
 __all__ = [
     "ETBS_BUFFER_MODES",

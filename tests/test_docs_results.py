@@ -1,0 +1,51 @@
+"""The results tables in docs/ are what the benchmark scripts make from the recorded runs next to them."""
+
+from __future__ import annotations
+
+import pathlib
+import shutil
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+
+pytest.importorskip("matplotlib")
+
+
+def test_cpu_suite_table_is_made_from_runs_jsonl(tmp_path):
+    from benchmarks import cpu_suite
+
+    shutil.copy(DOCS / "cpu_suite" / "runs.jsonl", tmp_path / "runs.jsonl")
+    cpu_suite.main(["--seeds", "3", "--steps", "10000", "--out", str(tmp_path), "--report"])
+    assert (tmp_path / "table.md").read_text() == (DOCS / "cpu_suite" / "table.md").read_text()
+
+
+def test_sample_efficiency_table_is_made_from_results_json(tmp_path):
+    from benchmarks import sample_efficiency
+
+    files = [DOCS / "sample_efficiency" / name for name in SAMPLE_EFFICIENCY_FILES]
+    sample_efficiency.main(["--report", *map(str, files), "--out", str(tmp_path)])
+    assert (tmp_path / "table.md").read_text() == (DOCS / "sample_efficiency" / "table.md").read_text()
+
+
+#: The recorded runs behind docs/sample_efficiency/table.md (the order of its rows).
+SAMPLE_EFFICIENCY_FILES = ("amd_small_preset_replay_context.json", "intel_amx_ppo_dqn.json")
+
+
+def test_readme_shows_the_cpu_suite_table():
+    table = (DOCS / "cpu_suite" / "table.md").read_text().strip()
+    assert table in (ROOT / "README.md").read_text()
+
+
+def test_demo_run_is_recorded_and_its_curve_redrawn(tmp_path):
+    import numpy as np
+
+    from benchmarks import demo
+
+    for name in ("final_eval.json", "evaluations.npz"):
+        shutil.copy(DOCS / "demo" / name, tmp_path / name)
+    summary = demo.main(["--report", str(tmp_path)])
+    results = np.load(tmp_path / "evaluations.npz")["results"]
+    assert summary["eval_mean_returns"] == pytest.approx(results.mean(1).tolist())
+    assert (tmp_path / "learning_curve.png").stat().st_size > 10_000
