@@ -23,14 +23,10 @@ Logging: SB3's ``rollout/*``, ``time/*``, ``train/learning_rate``, ``train/n_upd
 ``train/level{i}/<metric>`` for every metric of :meth:`Subactor.train_step` (mean over the updates since the last
 dump) plus ``train/level{i}/n_updates`` and ``train/level{i}/skipped_updates``.
 
-Faults (see ``docs/resume.md`` for resuming a run): non-finite observations and rewards raise ``ValueError`` naming
-the env (and the Dict key) before they reach the replay or the networks; an optimiser step whose loss or gradient norm
-is not finite is skipped (``train/level{i}/nonfinite/<name>``), and ``max_nonfinite_updates`` such updates of one
-level in a row stop training with ``FloatingPointError``; ``save`` and ``save_replay_buffer`` write atomically with
-the sha256 of every member, ``load`` and ``load_replay_buffer`` refuse truncated, corrupted or changed files and saves
-of other algorithms with ``ValueError`` (a rejected replay leaves the model's replay as it was), and
-``load(..., safe=True)`` unpickles nothing (:mod:`sb3_hieros.save_util`); a warning estimates the replay memory of all
-levels before allocation when it exceeds the available memory.
+Faults (``docs/resume.md``): non-finite observations and rewards raise ``ValueError`` before they reach the replay;
+an optimiser step with a non-finite loss or gradient norm is skipped, and ``max_nonfinite_updates`` such updates of
+one level in a row raise ``FloatingPointError``; saves are written atomically and checked on loading
+(:mod:`sb3_hieros.save_util`, ``load(..., safe=True)`` unpickles nothing).
 """
 
 from __future__ import annotations
@@ -54,9 +50,11 @@ from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
 from sb3_hieros.agent.hierarchy import HierarchyState
+from sb3_hieros.agent.world_model import set_world_model_lr
 from sb3_hieros.buffers import DictSequenceReplayBuffer, ETBSReplayBuffer, SequenceReplayBuffer
 from sb3_hieros.buffers.levels import HigherLevelRows, SubgoalTransitions, make_level_buffers
 from sb3_hieros.config import HierosConfig, get_preset
+from sb3_hieros.nn.guard import count_nonfinite, nonfinite_error
 from sb3_hieros.policies import CnnPolicy, HierosPolicy, MlpPolicy, MultiInputPolicy
 from sb3_hieros.replay_io import read_replay, write_replay
 from sb3_hieros.save_util import prepare_model_load, qualified_name, safe_load_values, write_archive
@@ -150,9 +148,8 @@ class HIEROS(OffPolicyAlgorithm):
                 "policy_kwargs must not contain 'config': HIEROS builds the policy's config from preset, "
                 "config_overrides and SB3's keywords; put configuration changes into config_overrides"
             )
-        if isinstance(max_nonfinite_updates, bool) or not isinstance(max_nonfinite_updates, int | np.integer):
-            raise ValueError(f"max_nonfinite_updates must be an int >= 1, got {max_nonfinite_updates!r}")
-        if max_nonfinite_updates < 1:
+        integer = isinstance(max_nonfinite_updates, int | np.integer) and not isinstance(max_nonfinite_updates, bool)
+        if not integer or max_nonfinite_updates < 1:
             raise ValueError(f"max_nonfinite_updates must be an int >= 1, got {max_nonfinite_updates!r}")
         base = get_preset(preset).replace(**(config_overrides or {}))
         given = {"buffer_size": buffer_size, "learning_starts": learning_starts, "batch_size": batch_size}
@@ -388,26 +385,19 @@ class HIEROS(OffPolicyAlgorithm):
     # ------------------------------------------------------------------------------------------------ training
 
     def _record_level(self, level: int, metrics: dict[str, float]) -> None:
-        """Log one update of ``level`` and watch its non-finite steps."""
+        """Log one update of ``level`` and count its skipped (non-finite) optimiser steps
+        (:func:`~sb3_hieros.nn.guard.count_nonfinite`)."""
         assert self._level_updates is not None
         self._level_updates[level] += 1
         for key, value in metrics.items():
             self.logger.record_mean(f"train/level{level}/{key}", value)
-        self._count_nonfinite(level, metrics)
-
-    def _set_world_model_lr(self, level: int, lr: float) -> None:
-        """Schedule value times the warm-up factor of this level's update count on its world-model optimiser."""
-        assert self._level_updates is not None
-        sub = self.policy.hierarchy.levels[level]
-        updates = self._level_updates[level]
-        scheduler = sub.wm_scheduler
-        factor = 1.0
-        if scheduler is not None:
-            factor = float(scheduler.lr_lambdas[0](updates))  # type: ignore[attr-defined]
-            scheduler.base_lrs = [lr] * len(sub.wm_optimizer.param_groups)
-            scheduler.last_epoch = updates
-        for group in sub.wm_optimizer.param_groups:
-            group["lr"] = lr * factor
+        assert self._skipped_updates is not None and self._nonfinite_streak is not None
+        skipped = count_nonfinite(metrics, level, self._skipped_updates, self._nonfinite_streak)
+        if skipped:
+            self.logger.record(f"train/level{level}/skipped_updates", self._skipped_updates[level])
+            in_a_row = self._nonfinite_streak[level]
+            if in_a_row >= self.max_nonfinite_updates:
+                raise nonfinite_error(metrics, level, skipped, in_a_row, self.max_nonfinite_updates)
 
     def train(self, gradient_steps: int, batch_size: int) -> None:
         """Level updates for ``gradient_steps`` new environment steps (see the module docstring's schedule).
@@ -433,7 +423,8 @@ class HIEROS(OffPolicyAlgorithm):
             batches: list[SequenceSamples | None] = [None] * len(buffers)
             for i in hierarchy.levels_due(self._level_updates[0]):
                 if buffers[i].can_sample():
-                    self._set_world_model_lr(i, lr)
+                    level = hierarchy.levels[i]
+                    set_world_model_lr(level.wm_optimizer, level.wm_scheduler, lr, self._level_updates[i])
                     batches[i] = buffers[i].sample(batch_size, env=self._vec_normalize_env if i == 0 else None)
             for i, update in enumerate(hierarchy.train_step(batches)):
                 if update is None:
@@ -449,36 +440,6 @@ class HIEROS(OffPolicyAlgorithm):
             self.logger.record(f"train/level{i}/n_updates", count, exclude="tensorboard")
         for i, count in enumerate(self._skipped_updates or []):
             self.logger.record(f"train/level{i}/skipped_updates", count)
-
-    def _count_nonfinite(self, level: int, metrics: dict[str, float]) -> None:
-        """Count an update of ``level`` with a skipped (non-finite) optimiser step; stop after too many in a row.
-
-        :param level: the level that was just updated
-        :param metrics: its :meth:`Subactor.train_step` metrics (``nonfinite/<name>`` = 1.0 for a skipped step)
-        """
-        assert self._skipped_updates is not None and self._nonfinite_streak is not None
-        skipped = [key.split("/", 1)[1] for key, value in metrics.items() if key.startswith("nonfinite/") and value]
-        if not skipped:
-            self._nonfinite_streak[level] = 0
-            return
-        self._skipped_updates[level] += 1
-        self._nonfinite_streak[level] += 1
-        self.logger.record(f"train/level{level}/skipped_updates", self._skipped_updates[level])
-        if self._nonfinite_streak[level] >= self.max_nonfinite_updates:
-            prefixes = {"world_model": "wm", "actor": "actor", "critic": "critic", "autoencoder": "ae"}
-            details = []
-            for name in skipped:
-                prefix = prefixes.get(name, name)
-                values = [
-                    f"{key}={metrics[key]:.4g}" for key in (f"{prefix}/loss", f"{prefix}/grad_norm") if key in metrics
-                ]
-                details.append(f"{name} loss ({', '.join(values)})" if values else f"{name} loss")
-            raise FloatingPointError(
-                f"level {level}: {self._nonfinite_streak[level]} updates in a row had a non-finite loss or gradient "
-                f"(max_nonfinite_updates={self.max_nonfinite_updates}); last skipped: {'; '.join(details)}. The "
-                "parameters were left at their last finite values; check the environment's observations and rewards, "
-                "or lower the learning rates"
-            )
 
     def learn(
         self: SelfHIEROS,

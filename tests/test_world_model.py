@@ -497,7 +497,7 @@ def test_imagination_without_dropout():
 
 
 def test_grouped_kl_matches_categorical_kl():
-    from sb3_hieros.agent.world_model import _grouped_kl
+    from sb3_hieros.agent.world_model.base import _grouped_kl
     from sb3_hieros.nn.distributions import categorical_kl
 
     log_p = th.log_softmax(th.randn(3, 5, 4, 6), -1)
@@ -506,7 +506,7 @@ def test_grouped_kl_matches_categorical_kl():
 
 
 def test_grouped_kl_with_given_probabilities_keeps_value_and_gradients():
-    from sb3_hieros.agent.world_model import _grouped_kl
+    from sb3_hieros.agent.world_model.base import _grouped_kl
 
     raw_p = th.randn(3, 5, 4, 6, requires_grad=True)
     raw_q = th.randn(3, 5, 4, 6, requires_grad=True)

@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch as th
 from gymnasium import spaces
 
-from sb3_hieros.agent.world_model.base import REWARD_BINS, WorldModel, _grouped_kl
+from sb3_hieros.agent.world_model.base import REWARD_BINS, WorldModel
 from sb3_hieros.agent.world_model.latent import LatentState, cat_states, stack_states
 from sb3_hieros.agent.world_model.observations import ObservationSpec
 from sb3_hieros.agent.world_model.rssm import RSSMWorldModel
@@ -28,9 +28,9 @@ __all__ = [
     "RSSMWorldModel",
     "S5WorldModel",
     "WorldModel",
-    "_grouped_kl",
     "cat_states",
     "make_world_model",
+    "set_world_model_lr",
     "stack_states",
     "world_model_lr_scheduler",
     "world_model_optimizer",
@@ -79,3 +79,23 @@ def world_model_lr_scheduler(optimizer: th.optim.Optimizer, warmup: int) -> th.o
     if warmup < 0:
         raise ValueError(f"warmup must be >= 0, got {warmup}")
     return th.optim.lr_scheduler.LambdaLR(optimizer, lambda step: min(1.0, (step + 1) / warmup) if warmup else 1.0)
+
+
+def set_world_model_lr(
+    optimizer: th.optim.Optimizer, scheduler: th.optim.lr_scheduler.LambdaLR | None, lr: float, updates: int
+) -> None:
+    """Set a world model's learning rate for its next update: ``lr`` (the value of the SB3 schedule) times the warm-up
+    factor of :func:`world_model_lr_scheduler` after ``updates`` updates.
+
+    :param optimizer: the world model's optimiser
+    :param scheduler: its warm-up scheduler, or None
+    :param lr: the scheduled learning rate
+    :param updates: updates the world model has made so far
+    """
+    factor = 1.0
+    if scheduler is not None:
+        factor = float(scheduler.lr_lambdas[0](updates))  # type: ignore[attr-defined]
+        scheduler.base_lrs = [lr] * len(optimizer.param_groups)
+        scheduler.last_epoch = updates
+    for group in optimizer.param_groups:
+        group["lr"] = lr * factor
