@@ -68,18 +68,84 @@ SelfHIEROS = TypeVar("SelfHIEROS", bound="HIEROS")
 #: hyperparameters that are set with ``config_overrides`` only (not constructor keywords)
 _CONFIG_ONLY = ("batch_length", "train_ratio", "imag_horizon", "n_levels", "subgoal_interval", "etbs_temperature")
 
+#: keywords of SB3's other algorithms that have no HIEROS meaning, and what HIEROS uses instead
+_NO_HIEROS_MEANING = {
+    "train_freq": "HIEROS updates by train_ratio (replayed steps per environment step): config_overrides="
+    "{'train_ratio': ...}",
+    "gradient_steps": "HIEROS updates by train_ratio (replayed steps per environment step): config_overrides="
+    "{'train_ratio': ...}",
+    "optimize_memory_usage": "the sequence replay stores every observation once already",
+    "action_noise": "HIEROS explores with its stochastic actors (entropy bonus: config_overrides="
+    "{'actor_critic': {'entropy': ...}})",
+    "target_update_interval": "the slow critics follow the critics at every update: config_overrides="
+    "{'actor_critic': {'slow_critic_fraction': ...}}",
+    "tau": "the slow critics follow the critics at every update: config_overrides="
+    "{'actor_critic': {'slow_critic_fraction': ...}}",
+    "exploration_fraction": "HIEROS explores with its stochastic actors, not epsilon-greedy",
+    "exploration_initial_eps": "HIEROS explores with its stochastic actors, not epsilon-greedy",
+    "exploration_final_eps": "HIEROS explores with its stochastic actors, not epsilon-greedy",
+    "max_grad_norm": "gradient norms are clipped per learner: config_overrides={'world_model': {'grad_clip': ...}, "
+    "'actor_critic': {'grad_clip': ...}, 'subgoal': {'grad_clip': ...}}",
+    "ent_coef": "the actor's entropy bonus is config_overrides={'actor_critic': {'entropy': ...}}",
+    "target_entropy": "the actor's entropy bonus is config_overrides={'actor_critic': {'entropy': ...}}",
+    "use_sde": "HIEROS explores with its stochastic actors (no state-dependent exploration)",
+    "sde_sample_freq": "HIEROS explores with its stochastic actors (no state-dependent exploration)",
+    "use_sde_at_warmup": "HIEROS explores with its stochastic actors (no state-dependent exploration)",
+    "policy_delay": "the actor and the critics update together at every update",
+    "target_policy_noise": "HIEROS has no target policy",
+    "target_noise_clip": "HIEROS has no target policy",
+    "n_steps": "HIEROS is off-policy: it updates by train_ratio, config_overrides={'train_ratio': ...}",
+    "gae_lambda": "the lambda of the returns is config_overrides={'actor_critic': {'lambda_': ...}}",
+}
+
 
 def _refuse_keywords(kwargs: dict[str, Any]) -> None:
-    """A clear error for hyperparameters passed as keywords that ``config_overrides`` sets, TypeError otherwise."""
+    """A clear error for hyperparameters passed as keywords that ``config_overrides`` sets or that HIEROS does not
+    have, TypeError otherwise."""
     misplaced = {name: kwargs.pop(name) for name in _CONFIG_ONLY if name in kwargs}
     if misplaced:
         raise ValueError(
             f"{', '.join(sorted(misplaced))}: not HIEROS constructor keywords; set them with "
             f"config_overrides={misplaced!r} (the constructor takes SB3's keywords learning_rate, buffer_size, "
-            "learning_starts and batch_size; every other hyperparameter is a field of HierosConfig)"
+            "learning_starts, batch_size and gamma; every other hyperparameter is a field of HierosConfig)"
+        )
+    meaningless = sorted(name for name in kwargs if name in _NO_HIEROS_MEANING)
+    if meaningless:
+        raise ValueError(
+            "; ".join(
+                f"{name}: an SB3 keyword without a HIEROS meaning ({_NO_HIEROS_MEANING[name]})" for name in meaningless
+            )
         )
     if kwargs:
         raise TypeError(f"HIEROS got unexpected keywords {sorted(kwargs)}")
+
+
+def actor_critic_sizes(net_arch: Any) -> dict[str, int]:
+    """SB3's ``net_arch`` as HIEROS's actor and critic sizes (``actor_critic.units`` and ``layers``): HIEROS's actor
+    and critics are MLPs on the world state, as SB3's actor and critics are MLPs on the features.
+
+    :param net_arch: equal widths, e.g. ``[64, 64]``, or a dict of them for the actor (``pi``) and the critics
+        (``qf`` / ``vf``), which must agree (HIEROS's actor and critics share their sizes)
+    :return: ``{"units": width, "layers": depth}``
+    """
+    widths = net_arch
+    if isinstance(net_arch, dict):
+        lists = [list(v) if isinstance(v, list | tuple) else v for v in net_arch.values()]
+        if not lists or set(net_arch) - {"pi", "qf", "vf"} or any(v != lists[0] for v in lists):
+            raise ValueError(
+                f"net_arch={net_arch!r}: HIEROS's actor and critics share one size; give a list, or a dict whose "
+                "'pi' and 'qf' / 'vf' lists agree"
+            )
+        widths = lists[0]
+    integers = isinstance(widths, list | tuple) and all(
+        isinstance(w, int | np.integer) and not isinstance(w, bool) and w > 0 for w in widths
+    )
+    if not integers or not widths or len(set(widths)) != 1:
+        raise ValueError(
+            f"net_arch={net_arch!r}: HIEROS's actor and critics have equal hidden widths, at least one layer: give a "
+            "list such as [64, 64] (or set config_overrides={'actor_critic': {'units': ..., 'layers': ...}})"
+        )
+    return {"units": int(widths[0]), "layers": len(widths)}
 
 
 class HIEROS(OffPolicyAlgorithm):
@@ -93,6 +159,7 @@ class HIEROS(OffPolicyAlgorithm):
     :param buffer_size: level-0 replay capacity in steps (level i: ``buffer_size // k**i``); None = preset
     :param learning_starts: environment steps of uniformly random actions before training; None = preset
     :param batch_size: chunks per update; None = preset
+    :param gamma: discount of every level's returns (``actor_critic.discount``); None = preset
     :param replay_buffer_class: level-0 buffer class, a :class:`SequenceReplayBuffer` subclass; None =
         :class:`ETBSReplayBuffer`
     :param replay_buffer_kwargs: extra keywords of the level-0 buffer
@@ -100,14 +167,19 @@ class HIEROS(OffPolicyAlgorithm):
         e.g. ``{"n_levels": 2, "train_ratio": 64.0, "world_model": {"kind": "rssm"}}``
     :param max_nonfinite_updates: training stops with ``FloatingPointError`` when this many updates in a row of one
         level had a non-finite loss or gradient (each such optimiser step is skipped, see the module docstring)
-    :param policy_kwargs: keywords of the policy (``bf16``, ``compile``)
+    :param policy_kwargs: keywords of the policy: ``bf16``, ``compile`` and SB3's ``normalize_images``,
+        ``optimizer_class`` / ``optimizer_kwargs`` (every optimiser of every level), ``features_extractor_class`` /
+        ``features_extractor_kwargs`` (level 0's encoder); ``net_arch`` sets the actor and critic sizes
+        (:func:`actor_critic_sizes`); see :class:`HierosPolicy`
     :param stats_window_size: window of the rollout statistics
     :param tensorboard_log: tensorboard log directory
     :param verbose: 0 silent, 1 info, 2 debug
     :param seed: random seed
     :param device: torch device
     :param _init_setup_model: build the networks and buffers now
-    :param kwargs: none; hyperparameters such as ``n_levels`` are set with ``config_overrides`` (a clear error says so)
+    :param kwargs: none; hyperparameters such as ``n_levels`` are set with ``config_overrides``, and keywords of SB3's
+        other algorithms without a HIEROS meaning (``train_freq``, ``gradient_steps``, ``action_noise``, ``tau``,
+        ...) are refused; a ``ValueError`` says what HIEROS uses instead
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -127,6 +199,7 @@ class HIEROS(OffPolicyAlgorithm):
         buffer_size: int | None = None,
         learning_starts: int | None = None,
         batch_size: int | None = None,
+        gamma: float | None = None,
         replay_buffer_class: type[SequenceReplayBuffer] | None = None,
         replay_buffer_kwargs: dict[str, Any] | None = None,
         config_overrides: dict[str, Any] | None = None,
@@ -143,11 +216,15 @@ class HIEROS(OffPolicyAlgorithm):
         _refuse_keywords(kwargs)
         if config_overrides is not None and not isinstance(config_overrides, dict):
             raise ValueError(f"config_overrides must be a dict or None, got {type(config_overrides).__name__}")
-        if policy_kwargs is not None and "config" in policy_kwargs:
-            raise ValueError(
-                "policy_kwargs must not contain 'config': HIEROS builds the policy's config from preset, "
-                "config_overrides and SB3's keywords; put configuration changes into config_overrides"
-            )
+        for name in ("config", "images_channel_first"):
+            if policy_kwargs is not None and name in policy_kwargs:
+                raise ValueError(
+                    f"policy_kwargs must not contain {name!r}: HIEROS builds the policy's config from preset, "
+                    "config_overrides and SB3's keywords, and wraps image envs by SB3's rule; put configuration "
+                    "changes into config_overrides"
+                )
+        if policy_kwargs is not None and "net_arch" in policy_kwargs:
+            actor_critic_sizes(policy_kwargs["net_arch"])
         integer = isinstance(max_nonfinite_updates, int | np.integer) and not isinstance(max_nonfinite_updates, bool)
         if not integer or max_nonfinite_updates < 1:
             raise ValueError(f"max_nonfinite_updates must be an int >= 1, got {max_nonfinite_updates!r}")
@@ -162,7 +239,7 @@ class HIEROS(OffPolicyAlgorithm):
             replay_buffer_kwargs=replay_buffer_kwargs,
             optimize_memory_usage=False,
             policy_kwargs=policy_kwargs,
-            gamma=base.actor_critic.discount,
+            gamma=base.actor_critic.discount if gamma is None else gamma,
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
             verbose=verbose,
@@ -210,7 +287,12 @@ class HIEROS(OffPolicyAlgorithm):
         # saves of models built when these were constructor keywords hold them as attributes
         legacy = {name: self.__dict__[name] for name in _CONFIG_ONLY if name in self.__dict__}
         keywords = {name: getattr(self, name) for name in ("buffer_size", "learning_starts", "batch_size")}
-        return config.replace(**legacy, **keywords, world_model={"lr": float(self.lr_schedule(1.0))})
+        actor_critic: dict[str, Any] = {"discount": float(self.gamma)}
+        if "net_arch" in self.policy_kwargs:
+            actor_critic.update(actor_critic_sizes(self.policy_kwargs["net_arch"]))
+        return config.replace(
+            **legacy, **keywords, world_model={"lr": float(self.lr_schedule(1.0))}, actor_critic=actor_critic
+        )
 
     def _setup_model(self) -> None:
         self._setup_lr_schedule()
@@ -218,12 +300,14 @@ class HIEROS(OffPolicyAlgorithm):
         self.config = self._build_config()
         self.gamma = self.config.actor_critic.discount
         self._convert_train_freq()
+        policy_kwargs = {name: value for name, value in self.policy_kwargs.items() if name != "net_arch"}
         self.policy = self.policy_class(
             self.observation_space,
             self.action_space,
             self.lr_schedule,
             config=self.config,
-            **self.policy_kwargs,
+            images_channel_first=True,  # the env was wrapped by SB3's rule (VecTransposeImage, or the user's)
+            **policy_kwargs,
         ).to(self.device)
         if self.replay_buffer is None:
             self.replay_buffer = self._make_replay_buffers()

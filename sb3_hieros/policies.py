@@ -14,12 +14,20 @@ grouped one-hot subgoal, or Box action in [-1, 1]) and, for i >= 1, ``level{i}/h
 states the level observes.
 
 ``MlpPolicy``, ``CnnPolicy`` and ``MultiInputPolicy`` are the same class under the names SB3 and rl-zoo expect: the
-world model picks a CNN for every image key and a symlog MLP for the vector keys of any observation space.
+world model picks a CNN for every image key and one MLP for the vector and discrete keys of any observation space.
+
+SB3's policy keywords: ``normalize_images`` (False: every rank-3 Box is an image taken as it is),
+``features_extractor_class`` / ``features_extractor_kwargs`` (a user's encoder for level 0's world model,
+:class:`~sb3_hieros.agent.world_model.observations.FeaturesExtractorEncoder`), ``optimizer_class`` /
+``optimizer_kwargs`` (every optimiser of every level, :func:`~sb3_hieros.nn.optim.user_optimizer`). Keywords of SB3's
+own networks (``activation_fn``, ``n_critics``, ...) have no HIEROS meaning and are refused with a ``ValueError``
+naming them.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -28,34 +36,90 @@ import torch as th
 import torch.nn.functional as F
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, FlattenExtractor, NatureCNN
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 
 from sb3_hieros.agent.hierarchy import Hierarchy, HierarchyState, make_hierarchy
-from sb3_hieros.agent.world_model import LatentState
+from sb3_hieros.agent.world_model import LatentState, ObservationOptions
 from sb3_hieros.config import HierosConfig, config_from_dict
+from sb3_hieros.nn.optim import check_optimizer_options
 from sb3_hieros.spaces import check_finite_observations, check_spaces
 
 __all__ = ["CnnPolicy", "HierosPolicy", "MlpPolicy", "MultiInputPolicy"]
 
 _LATENT_FIELDS = LatentState._fields  # ("stoch", "deter", "seq", "logits", "prior_logits")
 
+#: keywords of SB3's own policy networks, which HIEROS's networks do not have
+_SB3_NETWORK_KEYWORDS = (
+    "net_arch",
+    "activation_fn",
+    "share_features_extractor",
+    "n_critics",
+    "log_std_init",
+    "use_sde",
+    "use_expln",
+    "clip_mean",
+    "squash_output",
+    "ortho_init",
+    "full_std",
+    "dueling",
+)
+
+
+def _refuse_policy_keywords(kwargs: dict[str, Any]) -> None:
+    """A clear error for SB3 policy keywords without a HIEROS meaning, TypeError for unknown ones."""
+    if "decoded_subgoal_input" in kwargs:
+        raise ValueError(
+            "decoded_subgoal_input is not a policy keyword: set it with "
+            f"config_overrides={{'decoded_subgoal_input': {kwargs['decoded_subgoal_input']!r}}} (ablation 5.3.8)"
+        )
+    sb3 = sorted(name for name in kwargs if name in _SB3_NETWORK_KEYWORDS)
+    if sb3:
+        raise ValueError(
+            f"{', '.join(sb3)}: SB3 policy keywords without a HIEROS meaning. HIEROS's networks (world model, actor, "
+            "critics with one critic per reward term, subgoal autoencoder; SiLU activations) are sized by HierosConfig "
+            "fields: set them with config_overrides, e.g. {'actor_critic': {'units': 64, 'layers': 2}} (HIEROS "
+            "itself maps policy_kwargs net_arch onto those two fields)"
+        )
+    if kwargs:
+        raise TypeError(f"HierosPolicy got unexpected keywords {sorted(kwargs)}")
+
 
 class HierosPolicy(BasePolicy):
     """The HIEROS hierarchy (thesis 4.3, Figure 4.2) behind SB3's policy interface.
 
-    :param observation_space: observation space (Box vector, channel-first uint8 image Box, or Dict of Boxes)
-    :param action_space: ``Discrete`` or 1-d ``Box`` action space
+    :param observation_space: observation space (Box vector or image, Discrete, MultiDiscrete, MultiBinary, or a Dict
+        of them)
+    :param action_space: ``Discrete`` or ``Box`` action space (any shape: flattened for the networks)
     :param lr_schedule: learning-rate schedule (unused by the policy: :class:`~sb3_hieros.HIEROS` sets the world
         models' learning rate; kept for the SB3 policy signature)
     :param config: the resolved :class:`~sb3_hieros.config.HierosConfig` or its ``dataclasses.asdict`` dict; None
         for the ``"paper"`` preset
     :param bf16: bfloat16 autocast opt-in of the world models
     :param compile: ``torch.compile`` opt-in of the world models' sequence models
-    :param normalize_images: kept for the SB3 signature; images are always scaled by the world model (uint8 ->
-        x/255 - 0.5), so only True is accepted
+    :param normalize_images: SB3's keyword: True scales uint8 images (``x / 255 - 0.5`` in the world model); False
+        takes every rank-3 Box as an image as it is (float image-like inputs; the decoder predicts them in their
+        units)
+    :param optimizer_class: the class of every optimiser of every level (world model, actor, critics, subgoal
+        autoencoder); None keeps HIEROS's AdamW (:func:`~sb3_hieros.nn.optim.user_optimizer`)
+    :param optimizer_kwargs: keywords of every optimiser over the configuration's (e.g. ``eps``, ``betas``,
+        ``weight_decay``); not ``lr``: the learning rates stay per learner, from the configuration and
+        ``learning_rate``
+    :param features_extractor_class: an SB3 ``BaseFeaturesExtractor`` subclass that replaces the encoder of level 0's
+        world model (it receives SB3-preprocessed observations: images in [0, 1], discrete entries one-hot; see
+        :class:`~sb3_hieros.agent.world_model.observations.FeaturesExtractorEncoder`); the decoder still reconstructs
+        the observations. None: HIEROS's CNN / MLP encoder
+    :param features_extractor_kwargs: its keywords; given alone, as in SB3, they configure the default extractor of the
+        policy name (``FlattenExtractor`` for ``MlpPolicy``, ``NatureCNN`` for ``CnnPolicy``, ``CombinedExtractor``
+        for ``MultiInputPolicy``), with a ``UserWarning``
+    :param images_channel_first: take every image as channel-first (HIEROS passes True: it wraps the env by SB3's
+        rule); False checks with SB3's heuristic (:func:`~sb3_hieros.spaces.check_observation_space`)
     """
 
     hierarchy: Hierarchy
+    #: SB3's default features extractor of the policy name, used only for ``features_extractor_kwargs`` given without
+    #: ``features_extractor_class``
+    default_extractor_class: type[BaseFeaturesExtractor] = FlattenExtractor
 
     def __init__(
         self,
@@ -66,21 +130,19 @@ class HierosPolicy(BasePolicy):
         bf16: bool = False,
         compile: bool = False,
         normalize_images: bool = True,
+        optimizer_class: type[th.optim.Optimizer] | None = None,
+        optimizer_kwargs: dict[str, Any] | None = None,
+        features_extractor_class: type[BaseFeaturesExtractor] | None = None,
+        features_extractor_kwargs: dict[str, Any] | None = None,
+        images_channel_first: bool = False,
         **kwargs: Any,
     ) -> None:
-        if "decoded_subgoal_input" in kwargs:
-            raise ValueError(
-                "decoded_subgoal_input is not a policy keyword: set it with "
-                f"config_overrides={{'decoded_subgoal_input': {kwargs['decoded_subgoal_input']!r}}} (ablation 5.3.8)"
-            )
-        if kwargs:
-            raise TypeError(f"HierosPolicy got unexpected keywords {sorted(kwargs)}")
-        check_spaces(observation_space, action_space)
-        if not normalize_images:
-            raise ValueError(
-                "normalize_images=False is not supported: the HIEROS world model scales uint8 images itself and "
-                "treats float observations as vectors"
-            )
+        _refuse_policy_keywords(kwargs)
+        check_spaces(observation_space, action_space, bool(normalize_images), bool(images_channel_first))
+        check_optimizer_options(optimizer_class, optimizer_kwargs)
+        features_extractor_class, extractor_kwargs = _features_extractor(
+            features_extractor_class, features_extractor_kwargs, bool(normalize_images), self.default_extractor_class
+        )
         super().__init__(
             observation_space,
             action_space,
@@ -90,9 +152,21 @@ class HierosPolicy(BasePolicy):
         self.config = config_from_dict(config)
         self.bf16 = bool(bf16)
         self.compile = bool(compile)
+        self.images_channel_first = bool(images_channel_first)
+        #: SB3's policy attributes (None: HIEROS's AdamW per learner / its own encoder)
+        self.optimizer_class, self.optimizer_kwargs = optimizer_class, optimizer_kwargs
+        self.features_extractor_class, self.features_extractor_kwargs = features_extractor_class, extractor_kwargs
+        options = ObservationOptions(self.normalize_images, features_extractor_class, extractor_kwargs)
         self.hierarchy = make_hierarchy(
-            observation_space, action_space, self.config, bf16=self.bf16, compile=self.compile
+            observation_space,
+            action_space,
+            self.config,
+            bf16=self.bf16,
+            compile=self.compile,
+            observation_options=options,
         )
+        if optimizer_class is not None or optimizer_kwargs:
+            self.hierarchy.use_optimizer(optimizer_class, optimizer_kwargs)
         #: the level-0 world-model optimiser under SB3's conventional name (``load`` falls back on ``policy.optimizer``)
         self.optimizer = self.hierarchy.levels[0].wm_optimizer
         self._register_load_state_dict_pre_hook(_rename_flat_levels)
@@ -106,6 +180,11 @@ class HierosPolicy(BasePolicy):
             config=dataclasses.asdict(self.config),
             bf16=self.bf16,
             compile=self.compile,
+            optimizer_class=self.optimizer_class,
+            optimizer_kwargs=self.optimizer_kwargs,
+            features_extractor_class=self.features_extractor_class,
+            features_extractor_kwargs=self.features_extractor_kwargs,
+            images_channel_first=self.images_channel_first,
         )
         return data
 
@@ -146,25 +225,28 @@ class HierosPolicy(BasePolicy):
     def env_actions(self, action: th.Tensor) -> np.ndarray:
         """Level-0 action vectors as environment actions.
 
-        :param action: (n, A): one-hot (Discrete) or values in [-1, 1] (Box)
+        :param action: (n, A): one-hot (Discrete) or values in [-1, 1] (Box, A its entries flattened)
         :return: (n,) int64 indices for Discrete; (n, *shape) in the env bounds and the space's dtype for Box
         """
         if isinstance(self.action_space, spaces.Discrete):
             return action.argmax(-1).cpu().numpy().astype(np.int64)
-        scaled = action.float().cpu().numpy()
+        scaled = action.float().cpu().numpy().reshape(-1, *self.action_space.shape)
         unscaled = np.clip(self.unscale_action(scaled), self.action_space.low, self.action_space.high)
         return unscaled.astype(self.action_space.dtype)
 
     def action_vectors(self, env_actions: np.ndarray) -> th.Tensor:
         """Environment actions as level-0 action vectors (inverse of :meth:`env_actions`).
 
-        :param env_actions: (n,) indices (Discrete) or (n, *shape) actions in the env bounds (Box)
+        :param env_actions: (n,) indices (Discrete) or (n, *shape) actions in the env bounds (Box; flattened (n, A)
+            taken too)
         :return: (n, A) float on the policy's device
         """
         if isinstance(self.action_space, spaces.Discrete):
             index = th.as_tensor(np.asarray(env_actions).reshape(-1), dtype=th.long, device=self.device)
             return F.one_hot(index, int(self.action_space.n)).float()
-        scaled = self.scale_action(np.asarray(env_actions, dtype=np.float64)).reshape(-1, self.action_space.shape[0])
+        shape = self.action_space.shape
+        actions = np.asarray(env_actions, dtype=np.float64).reshape(-1, *shape)
+        scaled = self.scale_action(actions).reshape(-1, int(np.prod(shape)))
         return th.as_tensor(np.clip(scaled, -1.0, 1.0), dtype=th.float32, device=self.device)
 
     def random_action_vectors(self, n_envs: int) -> list[th.Tensor]:
@@ -267,7 +349,7 @@ class HierosPolicy(BasePolicy):
 
         :param observation: (n, *obs_shape) tensor or dict of tensors
         :param deterministic: no sampling
-        :return: (n,) indices (Discrete) or (n, A) actions in [-1, 1] (Box)
+        :return: (n,) indices (Discrete) or (n, A) actions in [-1, 1] (Box, entries flattened)
         """
         n = _batch_size(observation)
         state = self.hierarchy.initial_state(n)
@@ -331,6 +413,42 @@ class HierosPolicy(BasePolicy):
         return {name: value.cpu().numpy() for name, value in estimates.items()}
 
 
+def _features_extractor(
+    extractor_class: type[BaseFeaturesExtractor] | None,
+    kwargs: dict[str, Any] | None,
+    normalize_images: bool,
+    default_class: type[BaseFeaturesExtractor],
+) -> tuple[type[BaseFeaturesExtractor] | None, dict[str, Any] | None]:
+    """Check SB3's ``features_extractor_class`` / ``features_extractor_kwargs`` and return the class and keywords the
+    extractor of level 0's world model is built with (None, None: HIEROS's own encoder).
+
+    As in SB3, keywords without a class configure the policy name's default extractor (``default_class``), with a
+    warning that it replaces HIEROS's encoder; SB3's ``normalized_image=True`` is added for its image extractors when
+    images are not scaled.
+    """
+    if extractor_class is None:
+        if not kwargs:
+            return None, None
+        extractor_class = default_class
+        warnings.warn(
+            f"features_extractor_kwargs={kwargs!r} without features_extractor_class: as in SB3 they configure the "
+            f"policy's default extractor, so level 0's world model encodes observations with SB3's "
+            f"{default_class.__name__} instead of HIEROS's own encoder (whose sizes are the config fields "
+            "world_model.cnn_depth, mlp_units and mlp_layers)",
+            UserWarning,
+            stacklevel=4,
+        )
+    if not (isinstance(extractor_class, type) and issubclass(extractor_class, BaseFeaturesExtractor)):
+        raise ValueError(
+            f"features_extractor_class must be a stable_baselines3 BaseFeaturesExtractor subclass, got "
+            f"{extractor_class!r}"
+        )
+    out = dict(kwargs or {})
+    if not normalize_images and issubclass(extractor_class, NatureCNN | CombinedExtractor):
+        out.setdefault("normalized_image", True)
+    return extractor_class, out
+
+
 def _batch_size(observation: PyTorchObs) -> int:
     if isinstance(observation, Mapping):
         return int(next(iter(observation.values())).shape[0])
@@ -352,7 +470,11 @@ class CnnPolicy(HierosPolicy):
     """:class:`HierosPolicy` under the name SB3 uses for image observations (same networks: the world model uses a
     CNN encoder/decoder for every image key)."""
 
+    default_extractor_class = NatureCNN
+
 
 class MultiInputPolicy(HierosPolicy):
-    """:class:`HierosPolicy` under the name SB3 uses for Dict observations (CNNs for the image keys, one symlog MLP
-    over all vector keys)."""
+    """:class:`HierosPolicy` under the name SB3 uses for Dict observations (CNNs for the image keys, one MLP over all
+    vector and discrete keys)."""
+
+    default_extractor_class = CombinedExtractor

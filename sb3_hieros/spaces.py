@@ -22,50 +22,89 @@ from stable_baselines3.common.preprocessing import is_image_space, is_image_spac
 from sb3_hieros.config import SubgoalConfig
 
 __all__ = [
+    "SUPPORTED_OBSERVATIONS",
     "action_layout",
     "check_action_space",
     "check_finite_observations",
     "check_finite_step",
     "check_observation_space",
     "check_spaces",
+    "is_image_observation",
     "stacked_state_space",
     "subgoal_space",
 ]
 
 
-def _check_box(space: spaces.Space, name: str) -> None:
+#: the observation spaces HIEROS encodes (inside a Dict too), by class name for messages
+SUPPORTED_OBSERVATIONS = "Box (vectors or images), Discrete, MultiDiscrete, MultiBinary, and a Dict of them"
+
+
+def is_image_observation(space: spaces.Space, normalize_images: bool = True) -> bool:
+    """Whether the world model encodes ``space`` as an image (a CNN), by SB3's rule (``is_image_space``): a rank-3 uint8
+    Box with bounds [0, 255]; with ``normalize_images=False`` any rank-3 Box (float image-like inputs, taken as they
+    are, as SB3's ``NatureCNN`` takes them with ``normalized_image=True``).
+
+    :param space: an observation space (not a Dict)
+    :param normalize_images: SB3's policy keyword
+    :return: True for an image
+    """
+    return is_image_space(space, check_channels=False, normalized_image=not normalize_images)
+
+
+def _check_leaf(space: spaces.Space, name: str, normalize_images: bool, images_channel_first: bool) -> None:
+    if isinstance(space, spaces.Discrete | spaces.MultiDiscrete | spaces.MultiBinary):
+        if isinstance(space, spaces.MultiDiscrete) and (space.nvec.size == 0 or np.any(space.nvec < 1)):
+            raise ValueError(f"{name} {space} is not supported: a MultiDiscrete needs at least one entry, each >= 1")
+        if isinstance(space, spaces.MultiBinary) and int(np.prod(space.shape)) == 0:
+            raise ValueError(f"{name} {space} is not supported: a MultiBinary needs at least one entry")
+        return
     if not isinstance(space, spaces.Box):
         raise ValueError(
-            f"{name} {space} ({type(space).__name__}) is not supported by HIEROS; supported: Box (vectors or "
-            "channel-first uint8 images) and Dict of Boxes"
+            f"{name} {space} ({type(space).__name__}) is not supported by HIEROS; supported: {SUPPORTED_OBSERVATIONS}"
         )
-    if is_image_space(space, check_channels=False) and not is_image_space_channels_first(space):
+    if images_channel_first or not is_image_observation(space, normalize_images):
+        return
+    if not is_image_space_channels_first(space):
         raise ValueError(
-            f"{name} is a channel-last image of shape {space.shape}; HIEROS expects channel-first (C, H, W) images: "
-            "wrap the env in VecTransposeImage (HIEROS does this itself for the env it is given)"
+            f"{name} is an image of shape {space.shape} that SB3's rule (is_image_space_channels_first) takes as "
+            "channel-last; a HierosPolicy built on its own takes channel-first (C, H, W) images: build it from "
+            "VecTransposeImage(env).observation_space, or build HIEROS with the env, which follows SB3's rule "
+            "(it adds VecTransposeImage unless the env already has one, e.g. VecTransposeImage(env, skip=True) for "
+            "a channel-first frame stack)"
         )
 
 
-def check_observation_space(observation_space: spaces.Space) -> None:
-    """Raise ``ValueError`` unless HIEROS supports the observation space: a ``Box`` (vector, or a channel-first
-    uint8 image) or a ``Dict`` of such Boxes with string keys.
+def check_observation_space(
+    observation_space: spaces.Space, normalize_images: bool = True, images_channel_first: bool = False
+) -> None:
+    """Raise ``ValueError`` unless HIEROS supports the observation space: a ``Box`` (vector, or an image, see
+    :func:`is_image_observation`), ``Discrete``, ``MultiDiscrete``, ``MultiBinary``, or a ``Dict`` of them with string
+    keys.
+
+    Image channel order follows SB3: the algorithm wraps the env in ``VecTransposeImage`` when SB3's heuristic takes
+    an image as channel-last and the env has no such wrapper yet, and the networks take the first dimension as the
+    channels. ``images_channel_first=True`` (what :class:`~sb3_hieros.HIEROS` passes after that wrapping) trusts the
+    order; otherwise a channel-last image (by ``is_image_space_channels_first``) is refused.
 
     :param observation_space: the (image-transposed) observation space
+    :param normalize_images: SB3's policy keyword (False: every rank-3 Box is an image, taken as it is)
+    :param images_channel_first: take every image as channel-first
     """
     if not isinstance(observation_space, spaces.Dict):
-        _check_box(observation_space, "observation space")
+        _check_leaf(observation_space, "observation space", normalize_images, images_channel_first)
         return
     if len(observation_space.spaces) == 0:
-        raise ValueError("observation_space is an empty Dict space; HIEROS needs at least one Box entry")
+        raise ValueError("observation_space is an empty Dict space; HIEROS needs at least one entry")
     for key, sub in observation_space.spaces.items():
         if not isinstance(key, str) or not key or "." in key:
             raise ValueError(f"observation keys must be non-empty strings without '.', got {key!r}")
-        _check_box(sub, f"observation_space[{key!r}]")
+        _check_leaf(sub, f"observation_space[{key!r}]", normalize_images, images_channel_first)
 
 
 def check_action_space(action_space: spaces.Space) -> None:
     """Raise ``ValueError`` unless HIEROS supports the action space: ``Discrete`` starting at 0 with at least two
-    actions, or a 1-d ``Box`` with finite bounds.
+    actions, or a ``Box`` of any shape with finite bounds (flattened for the networks, reshaped for the env, as SAC
+    and TD3 do).
 
     :param action_space: the environment's action space
     """
@@ -74,26 +113,31 @@ def check_action_space(action_space: spaces.Space) -> None:
             raise ValueError(f"action space {action_space} is not supported: need Discrete(n) with n >= 2 and start 0")
         return
     if isinstance(action_space, spaces.Box):
-        if len(action_space.shape) != 1:
-            raise ValueError(
-                f"action space {action_space} is not supported: Box actions must be 1-d, got shape {action_space.shape}"
-            )
+        if int(np.prod(action_space.shape)) == 0:
+            raise ValueError(f"action space {action_space} is not supported: a Box action needs at least one entry")
         if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
             raise ValueError(f"action space {action_space} is not supported: Box actions need finite bounds")
         return
     raise ValueError(
         f"action space {action_space} ({type(action_space).__name__}) is not supported by HIEROS; "
-        "supported: Discrete and 1-d Box"
+        "supported: Discrete and Box"
     )
 
 
-def check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> None:
+def check_spaces(
+    observation_space: spaces.Space,
+    action_space: spaces.Space,
+    normalize_images: bool = True,
+    images_channel_first: bool = False,
+) -> None:
     """:func:`check_observation_space` and :func:`check_action_space`.
 
     :param observation_space: the (image-transposed) observation space
     :param action_space: the environment's action space
+    :param normalize_images: SB3's policy keyword
+    :param images_channel_first: take every image as channel-first (see :func:`check_observation_space`)
     """
-    check_observation_space(observation_space)
+    check_observation_space(observation_space, normalize_images, images_channel_first)
     check_action_space(action_space)
 
 
@@ -155,7 +199,11 @@ def check_finite_step(
     for j in np.flatnonzero(np.asarray(dones, dtype=bool).reshape(-1)):
         final = infos[j].get("terminal_observation")
         if final is not None:
-            batch = {k: v[None] for k, v in final.items()} if isinstance(final, dict) else np.asarray(final)[None]
+            batch = (
+                {k: np.asarray(v)[None] for k, v in final.items()}
+                if isinstance(final, dict)
+                else np.asarray(final)[None]
+            )
             check_finite_observations(batch, "terminal observation", envs=[int(j)])
 
 
@@ -185,11 +233,11 @@ def action_layout(action_space: spaces.Space) -> tuple[str, int, int]:
     """How a level's action space maps onto its actor's output.
 
     :param action_space: ``Discrete(n)`` -> one categorical of n classes; ``MultiDiscrete([K] * G)`` (a subgoal
-        space) -> G categoricals of K classes; 1-d ``Box`` -> a bounded normal per dim
-    :return: (kind ``"discrete"`` or ``"box"``, classes per group (discrete) or dims (box), number of groups)
+        space) -> G categoricals of K classes; ``Box`` -> a bounded normal per entry (flattened)
+    :return: (kind ``"discrete"`` or ``"box"``, classes per group (discrete) or entries (box), number of groups)
     """
     if isinstance(action_space, spaces.Discrete):
         return "discrete", int(action_space.n), 1
     if isinstance(action_space, spaces.MultiDiscrete):
         return "discrete", int(action_space.nvec[0]), len(action_space.nvec)
-    return "box", int(action_space.shape[0]), 1
+    return "box", int(np.prod(action_space.shape)), 1

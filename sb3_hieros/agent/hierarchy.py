@@ -104,7 +104,8 @@ class Hierarchy(nn.Module):
     :param observation_space: the environment's (checked, image-transposed) observation space
     :param action_space: the environment's (checked) action space
     :param config: the resolved configuration
-    :param world_model_options: ``bf16`` and ``compile`` opt-ins of the world models
+    :param world_model_options: ``bf16`` and ``compile`` opt-ins of the world models, and level 0's
+        ``observation_options`` (:class:`~sb3_hieros.agent.world_model.ObservationOptions`)
     """
 
     levels: nn.ModuleList
@@ -114,7 +115,7 @@ class Hierarchy(nn.Module):
         observation_space: spaces.Space,
         action_space: spaces.Space,
         config: HierosConfig,
-        **world_model_options: bool,
+        **world_model_options: Any,
     ) -> None:
         super().__init__()
         self.config = config
@@ -125,11 +126,12 @@ class Hierarchy(nn.Module):
         self.levels = nn.ModuleList(self._build_levels(observation_space, action_space, world_model_options))
 
     def _build_levels(
-        self, observation_space: spaces.Space, action_space: spaces.Space, options: dict[str, bool]
+        self, observation_space: spaces.Space, action_space: spaces.Space, options: dict[str, Any]
     ) -> list[nn.Module]:
         """Level 0 on the environment's spaces, level i on the subgoal space and the stacked states of level i-1."""
         levels: list[Subactor] = []
         window = 1 if self.last_state_only else self.subgoal_interval
+        higher = {name: value for name, value in options.items() if name != "observation_options"}
         for i in range(self.n_levels):
             below = levels[-1] if levels else None
             levels.append(
@@ -140,7 +142,7 @@ class Hierarchy(nn.Module):
                     level=i,
                     subgoal_input=i < self.n_levels - 1,
                     decoded_subgoal_input=self.config.decoded_subgoal_input,
-                    **options,
+                    **(options if below is None else higher),
                 )
             )
         return list(levels)
@@ -195,6 +197,19 @@ class Hierarchy(nn.Module):
             attrs = ("actor_optimizer", "critic_optimizer", "ae_optimizer")
             names += [f"levels.{i}.{a}" for a in (("wm_optimizer", *attrs) if self.has_world_model(i) else attrs)]
         return names
+
+    def use_optimizer(
+        self, optimizer_class: type[th.optim.Optimizer] | None, optimizer_kwargs: dict[str, Any] | None
+    ) -> None:
+        """Every optimiser of every level under SB3's ``optimizer_class`` / ``optimizer_kwargs`` (the policy
+        keywords): learning rates, epsilons and which parameters decay stay those of the configuration unless the
+        keywords say otherwise (:func:`~sb3_hieros.nn.optim.user_optimizer`).
+
+        :param optimizer_class: a ``torch.optim.Optimizer`` subclass, or None for AdamW
+        :param optimizer_kwargs: its keywords (not ``lr``), or None
+        """
+        for level in self.levels:
+            level.use_optimizer(optimizer_class, optimizer_kwargs)
 
     # ------------------------------------------------------------------------------------------------ acting
 
@@ -528,7 +543,7 @@ class Hierarchy(nn.Module):
 
 
 def make_hierarchy(
-    observation_space: spaces.Space, action_space: spaces.Space, config: HierosConfig, **world_model_options: bool
+    observation_space: spaces.Space, action_space: spaces.Space, config: HierosConfig, **world_model_options: Any
 ) -> Hierarchy:
     """The hierarchy of ``config``: :class:`Hierarchy`, or with ``hierarchical_world_models=False`` (ablation 5.3.1)
     :class:`~sb3_hieros.agent.shared.SharedWorldModelHierarchy`.
@@ -536,7 +551,8 @@ def make_hierarchy(
     :param observation_space: the environment's observation space
     :param action_space: the environment's action space
     :param config: the resolved configuration
-    :param world_model_options: ``bf16`` and ``compile`` opt-ins of the world models
+    :param world_model_options: ``bf16`` and ``compile`` opt-ins of the world models, level 0's
+        ``observation_options``
     :return: the hierarchy
     """
     from sb3_hieros.agent.shared import SharedWorldModelHierarchy  # it subclasses Hierarchy

@@ -9,6 +9,8 @@ ablation (:mod:`sb3_hieros.agent.shared`) use them.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch as th
 from gymnasium import spaces
 from torch import nn
@@ -17,6 +19,7 @@ from sb3_hieros.agent.actor_critic import ActorCritic
 from sb3_hieros.agent.subgoal import SubgoalAutoencoder
 from sb3_hieros.config import HierosConfig
 from sb3_hieros.nn.guard import step_if_finite
+from sb3_hieros.nn.optim import user_optimizer
 from sb3_hieros.spaces import subgoal_space
 
 __all__ = [
@@ -72,16 +75,34 @@ def level_actor_critic(
 
 
 def level_optimizers(
-    actor_critic: ActorCritic, autoencoder: SubgoalAutoencoder, config: HierosConfig
+    actor_critic: ActorCritic,
+    autoencoder: SubgoalAutoencoder,
+    config: HierosConfig,
+    optimizer_class: type[th.optim.Optimizer] | None = None,
+    optimizer_kwargs: dict[str, Any] | None = None,
 ) -> tuple[th.optim.Optimizer, th.optim.Optimizer, th.optim.Optimizer]:
-    """AdamW optimisers (no weight decay) of the actor, the critics and the subgoal autoencoder of one level.
+    """AdamW optimisers (no weight decay) of the actor, the critics and the subgoal autoencoder of one level; with
+    SB3's ``optimizer_class`` / ``optimizer_kwargs`` the user's (:func:`~sb3_hieros.nn.optim.user_optimizer`).
 
     :param actor_critic: the level's actor-critic
     :param autoencoder: the level's subgoal autoencoder
     :param config: hyperparameters (``actor_critic`` and ``subgoal`` sections)
+    :param optimizer_class: a ``torch.optim.Optimizer`` subclass, or None
+    :param optimizer_kwargs: its keywords (not ``lr``), or None
     :return: (actor, critic, autoencoder) optimisers
     """
     ac, sg = config.actor_critic, config.subgoal
+    if optimizer_class is not None or optimizer_kwargs:
+        learners = (
+            (actor_critic.actor_parameters(), ac.actor_lr, ac.eps),
+            (actor_critic.critic_parameters(), ac.critic_lr, ac.eps),
+            (autoencoder.parameters(), sg.lr, sg.eps),
+        )
+        actor, critic, ae = (
+            user_optimizer([(params, True)], lr, eps, 0.0, optimizer_class, optimizer_kwargs)
+            for params, lr, eps in learners
+        )
+        return actor, critic, ae
     return (
         th.optim.AdamW(actor_critic.actor_parameters(), lr=ac.actor_lr, eps=ac.eps, weight_decay=0.0),
         th.optim.AdamW(actor_critic.critic_parameters(), lr=ac.critic_lr, eps=ac.eps, weight_decay=0.0),
@@ -137,6 +158,19 @@ class LevelLearner(nn.Module):
         )
         self.actor_optimizer, self.critic_optimizer, self.ae_optimizer = level_optimizers(
             self.actor_critic, self.autoencoder, self.config
+        )
+
+    def use_optimizer(
+        self, optimizer_class: type[th.optim.Optimizer] | None, optimizer_kwargs: dict[str, Any] | None
+    ) -> None:
+        """Rebuild this level's optimisers under SB3's ``optimizer_class`` / ``optimizer_kwargs``
+        (:func:`level_optimizers`); call it before any training step.
+
+        :param optimizer_class: a ``torch.optim.Optimizer`` subclass, or None for AdamW
+        :param optimizer_kwargs: its keywords (not ``lr``), or None
+        """
+        self.actor_optimizer, self.critic_optimizer, self.ae_optimizer = level_optimizers(
+            self.actor_critic, self.autoencoder, self.config, optimizer_class, optimizer_kwargs
         )
 
     @property

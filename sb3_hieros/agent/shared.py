@@ -182,11 +182,11 @@ class SharedWorldModelHierarchy(Hierarchy):
     :param observation_space: the environment's observation space
     :param action_space: the environment's action space
     :param config: the resolved configuration (``hierarchical_world_models=False``)
-    :param world_model_options: ``bf16`` and ``compile`` opt-ins of the world model
+    :param world_model_options: ``bf16`` and ``compile`` opt-ins of the world model, its ``observation_options``
     """
 
     def _build_levels(
-        self, observation_space: spaces.Space, action_space: spaces.Space, options: dict[str, bool]
+        self, observation_space: spaces.Space, action_space: spaces.Space, options: dict[str, Any]
     ) -> list[nn.Module]:
         level0 = Subactor(
             observation_space,

@@ -38,6 +38,7 @@ from sb3_hieros.agent.learning import (
 from sb3_hieros.agent.subgoal import max_cosine_subgoal_reward, novelty_reward
 from sb3_hieros.agent.world_model import (
     LatentState,
+    ObservationOptions,
     WorldModel,
     make_world_model,
     world_model_lr_scheduler,
@@ -102,7 +103,7 @@ class Subactor(LevelLearner):
 
     :param observation_space: observations of this level: the env's for level 0, otherwise
         ``lower.higher_level_observation_space(k)``
-    :param action_space: ``Discrete`` or 1-d ``Box`` at level 0; ``lower.subgoal_space()`` above
+    :param action_space: ``Discrete`` or ``Box`` at level 0; ``lower.subgoal_space()`` above
     :param config: hyperparameters (world model, actor-critic and subgoal sections, ``imag_horizon``)
     :param level: index i of the level (0 = acts in the environment); informational
     :param subgoal_input: False for the top level: no subgoal input, no subgoal reward or critic
@@ -110,6 +111,7 @@ class Subactor(LevelLearner):
         (ablation 5.3.8; default False = thesis); has no effect at the top level
     :param bf16: bfloat16 autocast opt-in of the world model
     :param compile: ``torch.compile`` opt-in of the world model's sequence model
+    :param observation_options: SB3's observation keywords of the world model (level 0), or None
     """
 
     def __init__(
@@ -122,6 +124,7 @@ class Subactor(LevelLearner):
         decoded_subgoal_input: bool = False,
         bf16: bool = False,
         compile: bool = False,
+        observation_options: ObservationOptions | None = None,
     ) -> None:
         super().__init__()
         kind, classes, groups = action_layout(action_space)
@@ -143,7 +146,12 @@ class Subactor(LevelLearner):
             self.imag_gradient = ac.imag_gradient
 
         self.world_model: WorldModel = make_world_model(
-            observation_space, self.action_dim, config.world_model, bf16=bf16, compile=compile
+            observation_space,
+            self.action_dim,
+            config.world_model,
+            bf16=bf16,
+            compile=compile,
+            observation_options=observation_options,
         )
         self.h_dim = self.world_model.deter_dim
         self.z_dim = self.world_model.stoch_dim
@@ -508,6 +516,19 @@ class Subactor(LevelLearner):
         return LevelUpdate({**metric_floats(tensors), "wm/lr": lr}, context)
 
     # ------------------------------------------------------------------------------------------------ bookkeeping
+
+    def use_optimizer(
+        self, optimizer_class: type[th.optim.Optimizer] | None, optimizer_kwargs: dict[str, Any] | None
+    ) -> None:
+        """Rebuild all four optimisers (and the world model's warm-up scheduler) under SB3's ``optimizer_class`` /
+        ``optimizer_kwargs``; call it before any training step.
+
+        :param optimizer_class: a ``torch.optim.Optimizer`` subclass, or None for AdamW
+        :param optimizer_kwargs: its keywords (not ``lr``), or None
+        """
+        super().use_optimizer(optimizer_class, optimizer_kwargs)
+        self.wm_optimizer = world_model_optimizer(self.world_model, None, optimizer_class, optimizer_kwargs)
+        self.wm_scheduler = world_model_lr_scheduler(self.wm_optimizer, self.config.world_model.warmup)
 
     @property
     def optimizers(self) -> dict[str, th.optim.Optimizer]:

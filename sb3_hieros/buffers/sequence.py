@@ -12,6 +12,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import BaseBuffer, ReplayBuffer
 from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
+from stable_baselines3.common.type_aliases import DictReplayBufferSamples, ReplayBufferSamples
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_hieros.type_aliases import SequenceSamples
@@ -217,7 +218,8 @@ class SequenceReplayBuffer(ReplayBuffer):
         return np.where(self.stream_full, self.buffer_size, self.stream_pos)
 
     def size(self) -> int:
-        """:return: number of steps stored over all env streams"""
+        """:return: number of steps (rows) stored over all env streams (SB3's buffers count the rows of one env, as
+        all their streams have the same length; here streams differ, see the module docstring)"""
         return int(self.stored_steps().sum())
 
     def valid_starts(self) -> np.ndarray:
@@ -231,6 +233,78 @@ class SequenceReplayBuffer(ReplayBuffer):
     def oldest_rows(self) -> np.ndarray:
         """:return: the row of the oldest stored step of each env stream, int64 ``(n_envs,)``"""
         return np.where(self.stream_full, self.stream_pos, 0)
+
+    def _stored_rows(self) -> np.ndarray:
+        """(rows, n_envs) bool: the row holds a stored step."""
+        return self.stream_full[None, :] | (np.arange(self.buffer_size)[:, None] < self.stream_pos[None, :])
+
+    @property
+    def dones(self) -> np.ndarray:
+        """SB3's ``dones`` in the row convention: (rows, n_envs) float32, 1 where row t's observation ends its episode
+        (terminal, truncated by a time limit, or followed by the first row of a new episode; the newest row of a
+        stream when the stream's next :meth:`add` starts a new episode). Computed from ``is_terminal``, ``is_first``
+        and the write heads, not stored.
+
+        Row t holds ``a_{t-1}``, ``r_t`` and ``done_t`` of the step that arrived at ``o_t`` (module docstring), so
+        the SB3 transition of row t is ``(observations[t-1], actions[t], rewards[t], observations[t], dones[t])`` for
+        rows that are not ``is_first`` (:meth:`sample_transitions` draws them).
+        """
+        stored = self._stored_rows()
+        ended = self.is_terminal | (np.roll(self.is_first, -1, axis=0) & np.roll(stored, -1, axis=0))
+        streams = np.flatnonzero(stored.any(axis=0))
+        newest = (self.stream_pos[streams] - 1) % self.buffer_size
+        ended[newest, streams] = self.is_terminal[newest, streams] | self._expect_first[streams]
+        return (ended & stored).astype(np.float32)
+
+    @property
+    def timeouts(self) -> np.ndarray:
+        """SB3's ``timeouts`` in the row convention: (rows, n_envs) float32, 1 where row t ends its episode without
+        being terminal (a time-limit truncation, or an episode cut off by a reset); all zero with
+        ``handle_timeout_termination=False``, as in SB3. Computed, not stored.
+        """
+        if not self.handle_timeout_termination:
+            return np.zeros((self.buffer_size, self.n_envs), dtype=np.float32)
+        return self.dones * (~self.is_terminal)
+
+    def sample_transitions(
+        self, batch_size: int, env: VecNormalize | None = None
+    ) -> ReplayBufferSamples | DictReplayBufferSamples:
+        """SB3's transitions ``(o_t, a_t, o_{t+1}, done, r_{t+1})``, drawn uniformly from the stored ones, as
+        ``ReplayBuffer.sample`` returns them (for SB3 code; HIEROS itself samples chunks with :meth:`sample`).
+
+        :param batch_size: number of transitions
+        :param env: VecNormalize to normalise observations and rewards with, as in SB3
+        :return: ``ReplayBufferSamples`` (``DictReplayBufferSamples`` for Dict spaces): observations, actions as
+            stored (Box actions scaled to [-1, 1], Discrete indices), next observations, ``dones`` (terminal only,
+            as SB3 samples them) and rewards, each with the batch on axis 0
+        """
+        if int(batch_size) != batch_size or batch_size < 1:
+            raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
+        valid = self._stored_rows() & ~self.is_first  # the row was reached by a step from the row before it
+        full = np.flatnonzero(self.stream_full)
+        valid[self.stream_pos[full], full] = False  # the oldest row of a full stream: its predecessor is gone
+        rows, envs = np.nonzero(valid)
+        if rows.size == 0:
+            raise ValueError("the buffer holds no transition yet (every stored row starts an episode)")
+        chosen = np.minimum((_global_uniform(int(batch_size)) * rows.size).astype(np.int64), rows.size - 1)
+        rows, envs = rows[chosen], envs[chosen]
+        before = (rows - 1) % self.buffer_size
+
+        def observations(at: np.ndarray) -> th.Tensor | dict[str, th.Tensor]:
+            obs = {key: array[at, envs] for key, array in self._obs_arrays().items()}
+            normalized = self._normalize_obs(obs if self._dict_obs else obs[""], env)  # type: ignore[arg-type]
+            if isinstance(normalized, dict):
+                return {key: self.to_torch(value) for key, value in normalized.items()}
+            return self.to_torch(normalized)
+
+        samples = DictReplayBufferSamples if self._dict_obs else ReplayBufferSamples
+        return samples(  # type: ignore[return-value]
+            observations(before),
+            self.to_torch(self.actions[rows, envs]),
+            observations(rows),
+            self.to_torch(self.is_terminal[rows, envs].astype(np.float32).reshape(-1, 1)),
+            self.to_torch(self._normalize_reward(self.rewards[rows, envs].reshape(-1, 1), env)),
+        )
 
     def reset(self) -> None:
         """Forget all stored steps (the arrays are not cleared, as in SB3)."""
@@ -267,7 +341,9 @@ class SequenceReplayBuffer(ReplayBuffer):
         also = [(n, *self.action_space.shape)] + ([(n,)] if dim == 1 else [])
         return _check_shape(action, (n, dim), "action", tuple(s for s in dict.fromkeys(also) if s != (n, dim)))
 
-    def _check_subgoal(self, subgoal: np.ndarray | None, n: int | None = None) -> np.ndarray | None:
+    def _check_subgoal(
+        self, subgoal: np.ndarray | None, n: int | None = None, required: bool = True
+    ) -> np.ndarray | None:
         if self.subgoal_shape is None:
             if subgoal is not None:
                 raise ValueError(
@@ -275,9 +351,12 @@ class SequenceReplayBuffer(ReplayBuffer):
                     "construct it with subgoal_shape=... to store subgoals"
                 )
             return None
+        n = self.n_envs if n is None else n
         if subgoal is None:
-            raise ValueError(f"subgoal is required: this buffer stores subgoals of shape {self.subgoal_shape}")
-        return _check_shape(subgoal, (self.n_envs if n is None else n, *self.subgoal_shape), "subgoal")
+            if required:
+                raise ValueError(f"subgoal is required: this buffer stores subgoals of shape {self.subgoal_shape}")
+            return np.zeros((n, *self.subgoal_shape), dtype=np.float32)
+        return _check_shape(subgoal, (n, *self.subgoal_shape), "subgoal")
 
     def _on_rows_written(self, rows: np.ndarray, envs: np.ndarray) -> None:
         """Hook called after rows ``rows`` of streams ``envs`` received new steps (before the heads advance)."""
@@ -341,8 +420,10 @@ class SequenceReplayBuffer(ReplayBuffer):
         :param reward: r_{t+1}, ``(n_envs,)``
         :param done: ``(n_envs,)``, the episode ended with o_{t+1}
         :param infos: ``n_envs`` info dicts; ``"TimeLimit.truncated"`` marks a time-limit end (not terminal)
-        :param subgoal: g_t, the subgoal in force at o_t, ``(n_envs, *subgoal_shape)``; required iff the buffer
-            has a ``subgoal_shape``
+        :param subgoal: g_t, the subgoal in force at o_t, ``(n_envs, *subgoal_shape)``, only for a buffer with a
+            ``subgoal_shape`` (level 0 below a level that sets subgoals); without it such a buffer stores an all-zero
+            code (no subgoal: SB3 code such as ``extend`` can fill it; the subgoal reward of those rows compares
+            with the autoencoder's decoding of the zero code)
         """
         n = self.n_envs
         obs_d = self._check_obs(obs, "obs")
@@ -352,7 +433,7 @@ class SequenceReplayBuffer(ReplayBuffer):
         done = _check_shape(done, (n,), "done").astype(bool)
         if len(infos) != n:
             raise ValueError(f"infos has length {len(infos)}, expected n_envs={n}")
-        subgoal = self._check_subgoal(subgoal)
+        subgoal = self._check_subgoal(subgoal, required=False)
         truncated = np.zeros(n, dtype=bool)
         if self.handle_timeout_termination:
             truncated = np.array([bool(info.get("TimeLimit.truncated", False)) for info in infos])
@@ -530,7 +611,10 @@ class SequenceReplayBuffer(ReplayBuffer):
         self.has_context[rows, cols] = True
 
     def _get_samples(self, batch_inds: np.ndarray, env: VecNormalize | None = None):  # type: ignore[override]
-        raise NotImplementedError("SequenceReplayBuffer returns chunks: use sample(batch_size)")
+        raise NotImplementedError(
+            "SequenceReplayBuffer returns chunks: use sample(batch_size), or sample_transitions(batch_size) for SB3's "
+            "ReplayBufferSamples"
+        )
 
 
 class DictSequenceReplayBuffer(SequenceReplayBuffer):

@@ -11,19 +11,23 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch as th
 from gymnasium import spaces
 
 from sb3_hieros.agent.world_model.base import REWARD_BINS, WorldModel
 from sb3_hieros.agent.world_model.latent import LatentState, cat_states, stack_states
-from sb3_hieros.agent.world_model.observations import ObservationSpec
+from sb3_hieros.agent.world_model.observations import ObservationOptions, ObservationSpec
 from sb3_hieros.agent.world_model.rssm import RSSMWorldModel
 from sb3_hieros.agent.world_model.s5wm import S5WorldModel
 from sb3_hieros.config import WorldModelConfig
+from sb3_hieros.nn.optim import user_optimizer
 
 __all__ = [
     "REWARD_BINS",
     "LatentState",
+    "ObservationOptions",
     "ObservationSpec",
     "RSSMWorldModel",
     "S5WorldModel",
@@ -40,31 +44,44 @@ _KINDS: dict[str, type[WorldModel]] = {"s5": S5WorldModel, "rssm": RSSMWorldMode
 
 
 def make_world_model(
-    observation_space: spaces.Space, action_dim: int, config: WorldModelConfig, **options: bool
+    observation_space: spaces.Space, action_dim: int, config: WorldModelConfig, **options: Any
 ) -> WorldModel:
     """The world model selected by ``config.kind`` (``"s5"``: S5WM, ``"rssm"``: DreamerV3's RSSM).
 
     :param observation_space: observation space of the level
     :param action_dim: size of the action vector
     :param config: world-model hyperparameters
-    :param options: ``bf16`` and ``compile`` opt-ins (see :class:`WorldModel`)
+    :param options: ``bf16`` and ``compile`` opt-ins and ``observation_options`` (see :class:`WorldModel`)
     :return: the world model
     """
     return _KINDS[config.kind](observation_space, action_dim, config, **options)
 
 
-def world_model_optimizer(model: WorldModel, config: WorldModelConfig | None = None) -> th.optim.AdamW:
+def world_model_optimizer(
+    model: WorldModel,
+    config: WorldModelConfig | None = None,
+    optimizer_class: type[th.optim.Optimizer] | None = None,
+    optimizer_kwargs: dict[str, Any] | None = None,
+) -> th.optim.Optimizer:
     """AdamW for a world model with two groups: weight decay ``config.weight_decay`` for weight matrices, none for
     :meth:`WorldModel.no_weight_decay_parameters` (S5 SSM parameters, norms, biases).
 
+    With SB3's ``optimizer_class`` / ``optimizer_kwargs`` (policy keywords) the same groups go to the user's class
+    (:func:`~sb3_hieros.nn.optim.user_optimizer`).
+
     :param model: the world model
     :param config: hyperparameters (``lr``, ``eps``, ``weight_decay``); default ``model.config``
+    :param optimizer_class: a ``torch.optim.Optimizer`` subclass, or None
+    :param optimizer_kwargs: its keywords (not ``lr``), or None
     :return: the optimiser
     """
     cfg = model.config if config is None else config
     no_decay = model.no_weight_decay_parameters()
     no_decay_ids = {id(p) for p in no_decay}
     decay = [p for p in model.parameters() if id(p) not in no_decay_ids]
+    if optimizer_class is not None or optimizer_kwargs:
+        groups = [(decay, True), (no_decay, False)]
+        return user_optimizer(groups, cfg.lr, cfg.eps, cfg.weight_decay, optimizer_class, optimizer_kwargs)
     groups = [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
     return th.optim.AdamW(groups, lr=cfg.lr, eps=cfg.eps)
 

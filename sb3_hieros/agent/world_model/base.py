@@ -39,8 +39,9 @@ from sb3_hieros.agent.world_model.latent import LatentState, stack_states
 from sb3_hieros.agent.world_model.observations import (
     SINGLE_KEY,
     ObservationDecoder,
-    ObservationEncoder,
+    ObservationOptions,
     ObservationSpec,
+    make_observation_encoder,
 )
 from sb3_hieros.config import WorldModelConfig
 from sb3_hieros.nn.distributions import ContinueBernoulli, OneHotCategoricalST, TwoHotSymlog, symlog_bins
@@ -77,11 +78,13 @@ class WorldModel(nn.Module):
     Subclasses implement the sequence model: :meth:`_build_sequence_model`, :meth:`_observe`, :meth:`_obs_step`,
     :meth:`_img_step`, :meth:`_initial_state` and :meth:`no_weight_decay_parameters`.
 
-    :param observation_space: observation space of this level (Box image (C, H, W) uint8, Box vector, or Dict)
-    :param action_dim: size of the action vector (one-hot size for Discrete actions and subgoals, Box dims)
+    :param observation_space: observation space of this level (Box image (C, H, W) uint8, Box vector, Discrete,
+        MultiDiscrete, MultiBinary, or a Dict of them)
+    :param action_dim: size of the action vector (one-hot size for Discrete actions and subgoals, Box entries)
     :param config: world-model hyperparameters
     :param bf16: run matmul/conv-heavy parts under bfloat16 autocast (opt-in, see the module docstring)
     :param compile: ``torch.compile`` the convolution stacks and the sequence model (opt-in)
+    :param observation_options: SB3's observation keywords (image scaling, a user's features extractor), or None
     """
 
     kind: str = ""
@@ -93,12 +96,14 @@ class WorldModel(nn.Module):
         config: WorldModelConfig,
         bf16: bool = False,
         compile: bool = False,
+        observation_options: ObservationOptions | None = None,
     ) -> None:
         super().__init__()
         self.config = config
         self.observation_space = observation_space
         self.action_dim = int(action_dim)
-        self.spec = ObservationSpec(observation_space)
+        normalize_images = observation_options is None or observation_options.normalize_images
+        self.spec = ObservationSpec(observation_space, normalize_images)
         self.groups = config.stoch_groups
         self.classes = config.stoch_classes
         self.stoch_dim = self.groups * self.classes
@@ -106,7 +111,7 @@ class WorldModel(nn.Module):
         self.feat_dim = self.deter_dim + self.stoch_dim
         self.bf16 = bf16
         self.compile = compile
-        self.encoder = ObservationEncoder(self.spec, config)
+        self.encoder = make_observation_encoder(self.spec, config, observation_options)
         self.embed_dim = self.encoder.out_dim
         self.decoder = ObservationDecoder(self.spec, self.feat_dim, config)
         self.reward_head = MLP(self.feat_dim, REWARD_BINS, config.head_units, config.head_layers, out_scale=0.0)
@@ -384,7 +389,8 @@ class WorldModel(nn.Module):
         return self.cont_dist(state).mean
 
     def decode(self, state: LatentState) -> th.Tensor | dict[str, th.Tensor]:
-        """Mean observation predicted from a state (images as float pixels in [0, 255], vectors in raw units).
+        """Mean observation predicted from a state (images as float pixels in [0, 255], vectors in raw units, discrete
+        keys as their most likely value in the space: int64 indices, MultiBinary bits in its dtype).
 
         :param state: any state
         :return: tensor (..., *obs_shape), or a dict of them for Dict spaces
