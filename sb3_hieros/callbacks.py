@@ -263,7 +263,8 @@ class SubgoalDecodeCallback(_PeriodicDrawingCallback):
     observation space (:meth:`HIEROS.decoded_subgoals`, thesis 4.3.2) and show it next to the real observation.
 
     One picture per shown env, with one column per level (observation | level-1 subgoal | level-2 subgoal ...):
-    image observations as a grid with one row per image key (thesis Fig. 5.5); vector observations as bars per entry,
+    image observations as a grid with one row per image key (thesis Fig. 5.5); vector and discrete observations (the
+    decoded value of a discrete entry is its most likely one) as bars per entry,
     labelled with the entry's name (``labels``, else :data:`CLASSIC_CONTROL_OBSERVATIONS` for gymnasium's
     classic-control tasks, else ``obs[i]``), and, when a ``renderer`` draws states, a row of frames: the real state
     and every decoded subgoal as the env would show them. The real observation is the one the hierarchy has just
@@ -329,13 +330,13 @@ class SubgoalDecodeCallback(_PeriodicDrawingCallback):
             raise ValueError(f"labels for a Dict observation space must be a dict key -> names, got {given!r}")
         if not spec.is_dict and isinstance(given, Mapping):
             raise ValueError(f"labels for a Box observation space must be a sequence of names, got {given!r}")
-        if isinstance(given, Mapping) and set(given) - set(spec.vector_keys):
+        if isinstance(given, Mapping) and set(given) - set(spec.entry_keys):
             raise ValueError(
-                f"labels name keys {sorted(set(given) - set(spec.vector_keys))} that are not vector keys "
-                f"of the observation space; vector keys: {spec.vector_keys}"
+                f"labels name keys {sorted(set(given) - set(spec.entry_keys))} that are not vector or discrete keys "
+                f"of the observation space; such keys: {spec.entry_keys}"
             )
         self.entry_labels = {}
-        for key in spec.vector_keys:
+        for key in spec.entry_keys:
             names = given.get(key) if isinstance(given, Mapping) else given
             size = int(np.prod(spec.shapes[key]))
             self.entry_labels[key] = observation_labels(key, size, env_id, names)
@@ -384,7 +385,7 @@ class SubgoalDecodeCallback(_PeriodicDrawingCallback):
             image = subgoal_picture(
                 env,
                 spec.image_keys,
-                spec.vector_keys,
+                spec.entry_keys,
                 real,
                 decoded,
                 f"step {self.num_timesteps}, env {env}",
@@ -412,9 +413,10 @@ class ImaginationCallback(_PeriodicDrawingCallback):
     episode (:func:`recent_window`), the world model observes the first ``context`` steps and imagines the next
     ``horizon`` open-loop with the recorded actions (:func:`imagine_open_loop`). The picture shows, per image key,
     the real frames above the model's (reconstructions of the context, then the imagination; a red line marks the
-    start of imagination), per vector key the real and predicted trajectories of the first
+    start of imagination), per vector or discrete key the real and predicted trajectories of the first
     :data:`MAX_PLOTTED_DIMS` entries, and the per-step prediction error of the imagined steps: the mean squared
-    error over pixels scaled to [0, 1] (images) or over the entries in observation units (vectors). PNGs are
+    error over pixels scaled to [0, 1] (images) or over the entries in observation units (vectors), the share of
+    entries that differ (discrete keys: the decoded value is the most likely one). PNGs are
     named ``imagination_<step>.png``, the TensorBoard tag is ``imagination/env0``; the errors are logged as
     ``imagination/<key>error_mean``, ``..._first`` and ``..._last`` (``<key>`` empty for non-Dict spaces) and
     appended to ``save_dir/imagination_errors.csv`` (step, key, then one column per imagined step). Nothing is
@@ -468,9 +470,11 @@ class ImaginationCallback(_PeriodicDrawingCallback):
             diff = predicted[key][self.context :] - real[key][self.context :]
             if key in spec.image_keys:
                 diff = diff / 255.0
+            if key in spec.discrete_keys:  # the share of entries that differ
+                diff = (diff != 0).astype(np.float32)
             self.last_errors[key] = np.square(diff.reshape(self.horizon, -1)).mean(1)
         self._log_errors(spec.is_dict)
-        image = self._picture(spec.image_keys, spec.vector_keys, real, predicted)
+        image = self._picture(spec.image_keys, spec.entry_keys, real, predicted)
         self._write_image("imagination/env0", image, f"imagination_{self.num_timesteps:09d}.png")
 
     def _log_errors(self, is_dict: bool) -> None:
@@ -497,7 +501,8 @@ class ImaginationCallback(_PeriodicDrawingCallback):
         real: dict[str, np.ndarray],
         predicted: dict[str, np.ndarray],
     ) -> np.ndarray:
-        """Strips of real and predicted frames per image key, trajectories per vector key, and the error curve."""
+        """Strips of real and predicted frames per image key, trajectories per vector or discrete key, and the error
+        curve."""
         context, length = self.context, self.context + self.horizon
         vector_panels = [(key, d) for key in vector_keys for d in range(min(real[key][0].size, MAX_PLOTTED_DIMS))]
         vector_rows = (len(vector_panels) + 3) // 4

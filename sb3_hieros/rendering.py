@@ -200,15 +200,15 @@ def subgoal_picture(
     frames: list[np.ndarray] | None = None,
 ) -> np.ndarray:
     """One env's picture of :class:`~sb3_hieros.callbacks.SubgoalDecodeCallback`: a row of images per image key, a
-    bar chart per vector key, a row of rendered frames.
+    bar chart per vector or discrete key, a row of rendered frames.
 
     :param env: index of the env
     :param image_keys: keys of the image entries
-    :param vector_keys: keys of the vector entries
+    :param vector_keys: keys of the vector and discrete entries
     :param real: key -> (n_envs, ...) real observation
     :param decoded: per level above 0, key -> (n_envs, ...) decoded subgoal
     :param title: title suffix
-    :param entry_labels: key -> names of the vector entries (default ``obs[i]`` / ``<key>[i]``)
+    :param entry_labels: key -> names of their entries (default ``obs[i]`` / ``<key>[i]``)
     :param frames: rendered frames of the real observation and of every decoded subgoal, or None
     :return: (H, W, 3) uint8 picture
     """

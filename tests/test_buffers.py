@@ -240,8 +240,13 @@ def test_subgoals_follow_their_observation():
     expected = np.where(samples.is_terminal.numpy() | newest, ids - 1, ids)
     np.testing.assert_array_equal(goals[..., 0], expected)
     np.testing.assert_array_equal(goals[..., 1], -expected)
+    # SB3's add (and extend) without a subgoal stores the all-zero code; add_step of the higher levels needs one
+    buffer.add(np.full((2, 2), 99.0), np.full((2, 2), 98.0), np.zeros((2, 1)), np.zeros(2), np.zeros(2), [{}, {}])
+    newest = (buffer.stream_pos - 1) % buffer.buffer_size
+    np.testing.assert_array_equal(buffer.subgoals[newest, [0, 1]], 0.0)
+    np.testing.assert_array_equal(buffer.subgoals[newest - 1, [0, 1]], 0.0)  # the is_first row of o = 99
     with pytest.raises(ValueError, match="subgoal is required"):
-        buffer.add(np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((2, 1)), np.zeros(2), np.zeros(2), [{}, {}])
+        buffer.add_step(np.zeros((2, 2)), np.zeros((2, 1)), np.zeros(2), np.ones(2, bool), np.zeros(2, bool))
 
 
 def test_add_step_writes_dreamer_rows_directly():
@@ -487,3 +492,73 @@ def test_count_mode_spreads_draws_and_clears_overwritten_counters():
     assert buffer.stream_full[0] and buffer.stream_pos[0] == 6
     assert not buffer.counter.counts[:6].any()
     assert buffer.counter.counts[6:18].all()
+
+
+@pytest.mark.parametrize("handle_timeout", [True, False])
+@pytest.mark.parametrize("steps", [30, 200])  # part-filled and wrapped streams
+def test_sb3_dones_and_timeouts_mark_every_episode_end(handle_timeout, steps):
+    buffer = SequenceReplayBuffer(
+        120, OBS_SPACE, ACT_SPACE, n_envs=2, batch_length=4, handle_timeout_termination=handle_timeout
+    )
+    feeder = fill(buffer, steps, n_envs=2, episode_length=(4, 6, 3), truncate_every=2)
+    assert "dones" not in vars(buffer) and "timeouts" not in vars(buffer)  # computed, not stored
+    dones, timeouts = buffer.dones, buffer.timeouts
+    assert dones.shape == timeouts.shape == buffer.rewards.shape and dones.dtype == timeouts.dtype == np.float32
+    stored = buffer.stored_steps()
+    for e in range(2):
+        rows = np.arange(buffer.buffer_size) < stored[e]
+        ids = buffer.observations[:, e, 1]
+        ended = np.isin(ids, list(feeder.terminal_ids[e] | feeder.truncated_ids[e])) & rows
+        truncated = np.isin(ids, list(feeder.truncated_ids[e])) & rows
+        assert ended.any() and truncated.any()
+        np.testing.assert_array_equal(dones[:, e], ended)
+        np.testing.assert_array_equal(timeouts[:, e], truncated if handle_timeout else 0.0)
+
+
+def test_sample_transitions_are_sb3s_replay_buffer_samples():
+    from stable_baselines3.common.type_aliases import DictReplayBufferSamples, ReplayBufferSamples
+
+    buffer = SequenceReplayBuffer(60, OBS_SPACE, ACT_SPACE, n_envs=2, batch_length=4)
+    feeder = fill(buffer, 100, n_envs=2, episode_length=(5, 3), truncate_every=2)
+    set_random_seed(0)
+    samples = buffer.sample_transitions(300)
+    assert isinstance(samples, ReplayBufferSamples)
+    obs, next_obs = samples.observations.numpy(), samples.next_observations.numpy()
+    assert obs.shape == next_obs.shape == (300, 2) and samples.dones.shape == samples.rewards.shape == (300, 1)
+    k = obs[:, 1]
+    np.testing.assert_array_equal(next_obs, np.stack([obs[:, 0], k + 1], 1))  # o_{t+1} of the same stream
+    np.testing.assert_array_equal(samples.actions[:, 0].numpy(), k)  # the action taken at id k is k
+    np.testing.assert_array_equal(samples.rewards[:, 0].numpy(), k + 0.5)
+    terminal = [next_id in feeder.terminal_ids[int(e)] for e, next_id in next_obs]
+    np.testing.assert_array_equal(samples.dones[:, 0].numpy(), terminal)  # truncations are not dones (as SB3)
+    ended = [kk in feeder.terminal_ids[int(e)] | feeder.truncated_ids[int(e)] for e, kk in obs]
+    assert samples.dones.any() and not any(ended), "a transition crossed an episode border"
+
+    dict_space = spaces.Dict({"a": OBS_SPACE, "b": spaces.Discrete(3)})
+    dict_buffer = DictSequenceReplayBuffer(20, dict_space, spaces.Discrete(2), batch_length=2)
+    for t in range(5):
+        pair = [{"a": np.full((1, 2), t + i, np.float32), "b": np.array([(t + i) % 3])} for i in (0, 1)]
+        dict_buffer.add(*pair, np.array([t % 2]), np.ones(1), np.zeros(1), [{}])
+    dict_samples = dict_buffer.sample_transitions(8)
+    assert isinstance(dict_samples, DictReplayBufferSamples)
+    np.testing.assert_array_equal(dict_samples.next_observations["a"][:, 0], dict_samples.observations["a"][:, 0] + 1)
+    with pytest.raises(ValueError, match="no transition"):
+        SequenceReplayBuffer(20, OBS_SPACE, ACT_SPACE, batch_length=2).sample_transitions(4)
+
+
+def test_extend_as_sb3s_tests_call_it():
+    """SB3's test_save_load_replay_buffer extends a buffer with its own arrays; a buffer that stores subgoals takes
+    them too (the subgoals are zero)."""
+    buffer = SequenceReplayBuffer(200, OBS_SPACE, ACT_SPACE, n_envs=2, batch_length=4, subgoal_shape=(2,))
+    feeder = StreamFeeder(2, (4,))
+    for _ in range(10):
+        feeder.step(buffer, subgoal=True)
+    before = buffer.size()
+    infos = [[{"TimeLimit.truncated": bool(t)} for t in row] for row in buffer.timeouts]
+    arrays = [
+        a.copy() for a in (buffer.observations, buffer.observations, buffer.actions, buffer.rewards, buffer.dones)
+    ]
+    buffer.extend(*arrays, infos)
+    assert buffer.size() > before and buffer.stream_full.all()  # 100 transitions per stream, at least one row each
+    newest = (buffer.stream_pos - 1) % buffer.buffer_size
+    assert not buffer.subgoals[newest, [0, 1]].any()

@@ -412,12 +412,14 @@ def test_action_layout():
     assert action_layout(spaces.Discrete(6)) == ("discrete", 6, 1)
     assert action_layout(spaces.MultiDiscrete([8] * 8)) == ("discrete", 8, 8)
     assert action_layout(spaces.Box(-1, 1, (3,))) == ("box", 3, 1)
+    assert action_layout(spaces.Box(-1, 1, (2, 3))) == ("box", 6, 1)  # flattened for the networks
     # the environment's action space is checked once, where a model is built; levels trust their spaces
+    check_action_space(spaces.Box(-1, 1, (2, 2)))
     for bad, match in (
-        (spaces.Box(-1, 1, (2, 2)), "1-d"),
         (spaces.Box(-np.inf, np.inf, (2,)), "finite"),
-        (spaces.MultiDiscrete([3, 4]), "supported: Discrete and 1-d Box"),
-        (spaces.MultiBinary(3), "supported: Discrete and 1-d Box"),
+        (spaces.Box(-1, 1, (0,)), "at least one entry"),
+        (spaces.MultiDiscrete([3, 4]), "supported: Discrete and Box"),
+        (spaces.MultiBinary(3), "supported: Discrete and Box"),
         (spaces.Discrete(1), "n >= 2"),
     ):
         with pytest.raises(ValueError, match=match):

@@ -455,8 +455,10 @@ def test_bad_spaces_are_refused_where_a_model_is_built():
         check_observation_space(channel_last)
     with pytest.raises(ValueError, match="channel-first"):
         HierosPolicy(channel_last, spaces.Discrete(2), lambda _: 1e-3)
-    with pytest.raises(ValueError, match=r"Discrete.*not supported by HIEROS"):
-        check_observation_space(spaces.Discrete(4))
+    with pytest.raises(ValueError, match=r"Tuple.*not supported by HIEROS"):
+        check_observation_space(spaces.Tuple([spaces.Discrete(4)]))
+    with pytest.raises(ValueError, match=r"MultiDiscrete.*at least one entry"):
+        check_observation_space(spaces.Dict({"a": spaces.MultiDiscrete([])}))
     with pytest.raises(ValueError, match=r"WorldModelConfig\.kind"):
         tiny_config("s5").__class__(kind="gru")
 

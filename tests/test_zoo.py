@@ -9,10 +9,12 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch as th
 import yaml
 
 pytest.importorskip("rl_zoo3", reason="the 'zoo' extra is not installed")
 
+from benchmarks._equivalence_cases import TINY_NETWORKS
 from benchmarks.suites import DMC_VISION_TASKS, make_atari_env
 from benchmarks.zoo import HYPERPARAMS_FILE, dmc_env_id, main, register_hieros, sample_hieros_params
 from sb3_hieros import HIEROS
@@ -38,6 +40,36 @@ def test_train_then_enjoy(tmp_path, monkeypatch):
           "--reward-log", "rewards", "--num-threads", "1", "--deterministic"])  # fmt: skip
     episodes = (tmp_path / "rewards" / "0.monitor.csv").read_text().splitlines()[2:]
     assert episodes and all(float(line.split(",")[0]) > 0 for line in episodes)
+
+
+def test_yml_with_gamma_and_policy_kwargs_trains(tmp_path, monkeypatch):
+    """A zoo yml written for SB3's algorithms: gamma, policy_kwargs (a string the zoo evaluates, with optimizer and
+    net_arch), a learning-rate schedule."""
+    monkeypatch.chdir(tmp_path)
+    entry = {
+        "n_timesteps": 120,
+        "policy": "MlpPolicy",
+        "preset": "small",
+        "gamma": 0.95,
+        "learning_rate": "lin_1e-3",
+        "learning_starts": 60,
+        "batch_size": 2,
+        "policy_kwargs": "dict(net_arch=[32, 32], optimizer_class=th.optim.Adam, optimizer_kwargs=dict(eps=1e-6))",
+        "config_overrides": {**TINY_NETWORKS, "batch_length": 8, "train_ratio": 16},
+    }
+    (tmp_path / "hyperparams.yml").write_text(yaml.safe_dump({"FrozenLake-v1": entry}))
+    main(
+        [
+            "train", "--algo", "hieros", "--env", "FrozenLake-v1", "--seed", "1", "--num-threads", "1",
+            "--eval-freq", "-1", "--verbose", "0", "-conf", "hyperparams.yml",
+        ]
+    )  # fmt: skip
+    model = HIEROS.load(tmp_path / "logs" / "hieros" / "FrozenLake-v1_1" / "FrozenLake-v1.zip")
+    assert model.gamma == 0.95 and model.config.actor_critic.discount == 0.95
+    assert (model.config.actor_critic.units, model.config.actor_critic.layers) == (32, 2)
+    levels = model.policy.hierarchy.levels
+    assert all(type(o) is th.optim.Adam and o.param_groups[0]["eps"] == 1e-6 for o in levels[0].optimizers.values())
+    assert model.num_timesteps == 120 and model.level_updates()[0] > 0
 
 
 def test_hyperparams_file_and_registration():
