@@ -95,7 +95,13 @@ _NO_HIEROS_MEANING = {
     "target_policy_noise": "HIEROS has no target policy",
     "target_noise_clip": "HIEROS has no target policy",
     "n_steps": "HIEROS is off-policy: it updates by train_ratio, config_overrides={'train_ratio': ...}",
+    "n_epochs": "HIEROS is off-policy: it updates by train_ratio, config_overrides={'train_ratio': ...}",
     "gae_lambda": "the lambda of the returns is config_overrides={'actor_critic': {'lambda_': ...}}",
+    "clip_range": "HIEROS's actor is trained in imagination (REINFORCE or dynamics backpropagation), not clipped",
+    "clip_range_vf": "HIEROS's actor is trained in imagination (REINFORCE or dynamics backpropagation), not clipped",
+    "normalize_advantage": "returns are normalised per reward term: config_overrides={'actor_critic': ...}",
+    "vf_coef": "the critics have optimisers of their own: config_overrides={'actor_critic': {'critic_lr': ...}}",
+    "target_kl": "HIEROS's actor is trained in imagination (REINFORCE or dynamics backpropagation), not clipped",
 }
 
 
@@ -357,12 +363,18 @@ class HIEROS(OffPolicyAlgorithm):
         """Load the replay of every level, written by :meth:`save_replay_buffer` (or a legacy pickle, with a warning).
 
         The file is checked against this model's buffers (levels, ``n_envs``, rows, every array's dtype and shape,
-        checksums) before anything is replaced; on ``ValueError`` the model's replay is unchanged.
+        checksums) before anything is replaced; on ``ValueError`` the model's replay is unchanged. The loaded buffers
+        sample onto the model's current device.
 
         :param path: the file or a binary file object
         :param truncate_last_traj: unused (SB3's HER option)
         """
+        # after ``model.replay_buffer = None`` (as SB3's tests do) fresh buffers describe what the file must hold
+        if self.replay_buffer is None:
+            self.replay_buffer = self._make_replay_buffers()
         buffers = read_replay(path, self.level_buffers())
+        for buffer in buffers:  # the model's current device, as SB3 does
+            buffer.device = self.device
         self.replay_buffer = buffers[0]
 
     def _setup_learn(

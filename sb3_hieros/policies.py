@@ -63,6 +63,11 @@ _SB3_NETWORK_KEYWORDS = (
     "ortho_init",
     "full_std",
     "dueling",
+    "lstm_hidden_size",
+    "n_lstm_layers",
+    "shared_lstm",
+    "enable_critic_lstm",
+    "lstm_kwargs",
 )
 
 
@@ -76,8 +81,9 @@ def _refuse_policy_keywords(kwargs: dict[str, Any]) -> None:
     sb3 = sorted(name for name in kwargs if name in _SB3_NETWORK_KEYWORDS)
     if sb3:
         raise ValueError(
-            f"{', '.join(sb3)}: SB3 policy keywords without a HIEROS meaning. HIEROS's networks (world model, actor, "
-            "critics with one critic per reward term, subgoal autoencoder; SiLU activations) are sized by HierosConfig "
+            f"{', '.join(sb3)}: SB3 policy keywords without a HIEROS meaning. HIEROS's networks (world model, whose "
+            "sequence model is the recurrence, actor, critics with one critic per reward term, subgoal autoencoder; "
+            "SiLU activations) are sized by HierosConfig "
             "fields: set them with config_overrides, e.g. {'actor_critic': {'units': 64, 'layers': 2}} (HIEROS "
             "itself maps policy_kwargs net_arch onto those two fields)"
         )
@@ -167,6 +173,10 @@ class HierosPolicy(BasePolicy):
         )
         if optimizer_class is not None or optimizer_kwargs:
             self.hierarchy.use_optimizer(optimizer_class, optimizer_kwargs)
+        if features_extractor_class is not None:
+            # SB3's name for the policy's extractor: a reference to the one in level 0's world model, not a second
+            # registration (the policy's state dict keeps one copy of its parameters)
+            object.__setattr__(self, "features_extractor", self.hierarchy.levels[0].world_model.encoder.extractor)
         #: the level-0 world-model optimiser under SB3's conventional name (``load`` falls back on ``policy.optimizer``)
         self.optimizer = self.hierarchy.levels[0].wm_optimizer
         self._register_load_state_dict_pre_hook(_rename_flat_levels)
