@@ -24,6 +24,7 @@ EXTRINSIC_REWARD_LEVELS = ("all", "top")
 ACTION_ALIGNMENTS = ("previous", "current")
 REINFORCE_ADVANTAGES = ("normalized", "raw")
 TERMINAL_REWARDS = ("kept", "zeroed")
+RETURN_NORMALIZATIONS = ("combined", "per_term")
 
 
 def _check_types(obj: object) -> None:
@@ -185,6 +186,10 @@ class ActorCriticConfig:
     :param eps: AdamW epsilon of actor and critics
     :param grad_clip: gradient norm clip of actor and critics
     :param slow_critic_fraction: EMA fraction of the slow critics, applied every update
+    :param return_normalization: ``"combined"``: the advantage is the weighted sum of the terms' advantages divided by
+        one return scale, that of the mixed return of eq. 4.3, so each term pulls on the actor in proportion to its
+        weight and its size in reward units; ``"per_term"``: each term's advantage is divided by its own return scale,
+        so each term's pull is set by its weight alone (:class:`~sb3_hieros.agent.actor_critic.ActorCritic`)
     """
 
     units: int = 256
@@ -203,10 +208,12 @@ class ActorCriticConfig:
     eps: float = 1e-5
     grad_clip: float = 100.0
     slow_critic_fraction: float = 0.02
+    return_normalization: str = "per_term"
 
     def __post_init__(self) -> None:
         _check_types(self)
         _check_positive(self, "units", "layers", "actor_lr", "critic_lr", "eps", "grad_clip")
+        _check_choice(self, "return_normalization", RETURN_NORMALIZATIONS)
         _check_fraction(self, "discount", "lambda_", "unimix", "slow_critic_fraction")
         _check_choice(self, "imag_gradient", IMAG_GRADIENTS)
         for name in ("entropy", "extrinsic_weight", "subgoal_weight", "novelty_weight"):

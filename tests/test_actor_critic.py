@@ -238,9 +238,18 @@ def test_active_terms_and_input_validation():
         ActorCritic(10, "discrete", 3, gradient="both")
 
 
-def test_advantage_is_weighted_sum_of_normalised_terms():
+def test_per_term_advantage_is_weighted_sum_of_normalised_terms():
     weights = {"extrinsic": 1.0, "subgoal": 0.3, "novelty": 0.1}
-    ac = ActorCritic(10, "discrete", 3, hidden=16, layers=1, reward_weights=weights, entropy_coef=0.0)
+    ac = ActorCritic(
+        10,
+        "discrete",
+        3,
+        hidden=16,
+        layers=1,
+        reward_weights=weights,
+        entropy_coef=0.0,
+        return_normalization="per_term",
+    )
     feats, actions, rewards, cont = _batch(h=3)
     rewards = {k: v * 50 for k, v in rewards.items()}
     scales = {"extrinsic": 4.0, "subgoal": 0.5, "novelty": 10.0}  # 0.5 is floored to 1
@@ -263,6 +272,34 @@ def test_advantage_is_weighted_sum_of_normalised_terms():
         rtol=1e-5,
     )
     assert th.isclose(metrics["subgoal/return_scale"], th.tensor(1.0))
+
+
+def test_combined_advantage_divides_the_mixed_return_by_one_scale():
+    weights = {"extrinsic": 1.0, "subgoal": 0.3}
+    ac = ActorCritic(10, "box", 2, hidden=16, layers=1, reward_weights=weights, entropy_coef=0.0)
+    assert ac.return_normalization == "combined" and set(ac.normalizers) == {"combined"}
+    feats, _, rewards, cont = _batch(h=3)
+    actions = th.rand(3, 6, 2) * 2 - 1
+    rewards = {"extrinsic": rewards["extrinsic"] * 50, "subgoal": rewards["subgoal"]}
+    ac.normalizers["combined"].low.fill_(-2.0)
+    ac.normalizers["combined"].high.fill_(18.0)  # S = 20
+    _, _, metrics = ac.loss(feats, actions, rewards, cont, update_normalizers=False)
+    # zero-initialised critics: A = (R_extr + 0.3 R_sg) / 20, the subgoal term in reward units, not rescaled
+    returns = {k: lambda_returns(rewards[k][1:], th.zeros(3, 6), cont[1:], th.zeros(6), 0.997, 0.95) for k in weights}
+    expected = (returns["extrinsic"] + 0.3 * returns["subgoal"]) / 20.0
+    assert th.isclose(metrics["advantage_mean"], expected.mean(), rtol=1e-5)
+    assert th.isclose(metrics["subgoal/return_scale"], th.tensor(20.0))
+    assert th.isclose(ac.return_scale("subgoal"), th.tensor(20.0))
+    assert th.isclose(ac.return_scale("extrinsic"), th.tensor(20.0))
+    # the normaliser follows the percentiles of the mixed return, not of any one term
+    ac.loss(feats, actions, rewards, cont)
+    low, high = th.quantile((returns["extrinsic"] + 0.3 * returns["subgoal"]).reshape(-1), th.tensor([0.05, 0.95]))
+    assert th.isclose(ac.normalizers["combined"].low, 0.99 * -2.0 + 0.01 * low, rtol=1e-4)
+    assert th.isclose(ac.normalizers["combined"].high, 0.99 * 18.0 + 0.01 * high, rtol=1e-4)
+    with pytest.raises(ValueError, match="return_normalization"):
+        ActorCritic(10, "box", 2, return_normalization="mixed")
+    with pytest.raises(ValueError, match="active terms"):
+        ac.return_scale("novelty")
 
 
 def test_reinforce_gradient_reaches_only_the_actor():
@@ -333,7 +370,9 @@ def test_state_dict_contents():
     sd = ac.state_dict()
     assert all(v.is_floating_point() and v.numel() > 0 for v in sd.values())
     assert not any(k.endswith("bins") for k in sd)
-    assert {f"normalizers.{k}.{b}" for k in ac.active_terms for b in ("low", "high")} <= set(sd)
+    assert {f"normalizers.combined.{b}" for b in ("low", "high")} <= set(sd)
+    per_term = ActorCritic(6, "discrete", 8, hidden=8, layers=1, return_normalization="per_term").state_dict()
+    assert {f"normalizers.{k}.{b}" for k in ac.active_terms for b in ("low", "high")} <= set(per_term)
     assert any(k.startswith("critics.extrinsic.slow_net.") for k in sd)
     n_actor = sum(p.numel() for p in ac.actor_parameters())
     assert n_actor == sum(p.numel() for p in ac.actor.parameters())

@@ -178,6 +178,30 @@ def test_imagine_shapes_and_no_inplace(kind):
     assert th.allclose(acts[1], policy(states.select(1)))
 
 
+def test_rollout_runs_without_dropout_in_training_mode():
+    model = vector_model("s5", dropout=0.5)
+    obs, actions, is_first = random_chunk(2, 5)
+    model.train(True)
+    post, _ = model.observe(obs, actions, is_first)
+    start = post.flatten_batch().detach()
+    recorded = th.rand(4, start.deter.shape[0], 2) * 2 - 1
+    action = recorded[0].clone().requires_grad_(True)
+
+    def step(t: int, state: LatentState) -> th.Tensor | None:
+        return (action if t == 0 else recorded[t]) if t < 4 else None
+
+    first, _ = model.rollout(start, 4, step, deterministic=True)
+    second, _ = model.rollout(start, 4, step, deterministic=True)
+    assert_states_close(first, second, atol=0.0)  # dropout would make the two rollouts differ
+    assert model.training  # the mode is restored
+    first.deter[-1].sum().backward()  # gradients still reach the actions (dynamics backpropagation)
+    assert action.grad is not None and action.grad.abs().sum() > 0
+    # the observation path in training mode does use dropout: two posteriors of one chunk differ
+    again, _ = model.observe(obs, actions, is_first, deterministic=True)
+    once_more, _ = model.observe(obs, actions, is_first, deterministic=True)
+    assert not th.allclose(again.deter, once_more.deter)
+
+
 @pytest.mark.parametrize("kind", KINDS)
 def test_imagination_gradients_flow_through_recurrent_state(kind):
     model = vector_model(kind)

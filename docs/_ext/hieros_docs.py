@@ -78,6 +78,7 @@ THESIS: dict[str, str] = {
     "actor_critic.eps": "value: public code",
     "actor_critic.grad_clip": "value: public code",
     "actor_critic.slow_critic_fraction": "4.3.2 (value: public code)",
+    "actor_critic.return_normalization": "4.3.2, eq. 4.3 (not in the thesis table)",
     "subgoal.n_cat": "4.3.1, table 4.6.3 (subgoal shape 8x8)",
     "subgoal.n_classes": "4.3.1, table 4.6.3 (subgoal shape 8x8)",
     "subgoal.units": "4.3.1, table 4.6.3 (MLP units)",

@@ -37,6 +37,8 @@ DEFAULT_REWARD_WEIGHTS: dict[str, float] = {"extrinsic": 1.0, "subgoal": 0.3, "n
 ACTION_MIN_STD, ACTION_MAX_STD = 0.1, 1.0
 #: Bins of the critics' symlog two-hot value distribution (DreamerV3).
 VALUE_BINS = 255
+#: How advantages are scaled (:class:`ActorCritic`, ``return_normalization``).
+RETURN_NORMALIZATIONS = ("combined", "per_term")
 #: Names of the optional scalar actor inputs of eq. 4.6.
 EXTRA_INPUTS = ("reward", "cont", "entropy")
 
@@ -315,16 +317,23 @@ class Critic(nn.Module):
 class ActorCritic(nn.Module):
     """One actor and one critic per active reward term (thesis 4.3.2), trained on imagined trajectories.
 
-    Terms with weight 0 (or left out of ``reward_weights``) get no critic and no normaliser; the top level simply
-    passes no ``"subgoal"`` weight. The actor objective per imagined step t is (eq. 4.3 at the advantage level)
+    Terms with weight 0 (or left out of ``reward_weights``) get no critic; the top level simply passes no
+    ``"subgoal"`` weight. The actor objective per imagined step t follows eq. 4.3, which mixes the terms into one reward
+    ``r = r_extr + alpha_g r_g + alpha_nov r_nov``. Its lambda-return is the weighted sum of the terms' returns, so with
+    one critic per term (``return_normalization="combined"``, default)
 
     .. math::
-        A_t = \\sum_k \\alpha_k \\frac{R^k_t - v^k(s_t)}{\\max(1, S_k)}
+        A_t = \\frac{\\sum_k \\alpha_k (R^k_t - v^k(s_t))}{\\max(1, S)}
 
-    with alpha = ``reward_weights``, R^k the lambda-returns of term k under its fast critic and S_k its return scale
-    (:class:`ReturnNormalizer`). This is a weighted *sum* as in eq. 4.3 (r = r_extr + 0.3 r_g + 0.1 r_nov); DreamerV3
-    divides by the sum of the weights, which only rescales A against the entropy bonus. Unlike the reference,
-    REINFORCE also uses the normalised advantages.
+    with alpha = ``reward_weights``, R^k the lambda-returns of term k under its fast critic and S the return scale
+    (:class:`ReturnNormalizer`) of the mixed return ``sum_k alpha_k R^k``: DreamerV3's normalisation of the one return
+    the thesis defines. Each term then pulls on the actor in proportion to its weight *and* its size in reward units,
+    as eq. 4.3 says: where the extrinsic rewards are large and dense, the bounded subgoal reward (|r_g| <= 1) nudges
+    the policy; where they are sparse, it drives it. ``return_normalization="per_term"`` divides each term by its own
+    scale S_k instead (Director's choice): each term's pull is then set by its weight alone, so the subgoal term keeps
+    0.3 of the extrinsic term's pull whatever the task's rewards and can outweigh small but decisive extrinsic
+    differences (``benchmarks/control_failures.py`` measures each term's share of the actor's gradient). Unlike the
+    reference code, REINFORCE also uses the normalised advantage.
 
     * ``gradient="reinforce"`` (default for discrete): ``-w_t (log pi(a_t|s_t) sg(A_t) + eta H_t)``.
     * ``gradient="dynamics"`` (default for box): ``-w_t (A_t + eta H_t)``, where A_t carries gradients back through
@@ -353,6 +362,8 @@ class ActorCritic(nn.Module):
     :param retnorm_decay: return normaliser EMA decay
     :param retnorm_percentiles: return normaliser percentiles
     :param retnorm_min_scale: return normaliser floor
+    :param return_normalization: ``"combined"`` (default: one scale for the mixed return of eq. 4.3) or
+        ``"per_term"`` (one scale per reward term), see above
     :param reinforce_advantage: ``"normalized"`` (default, the A_t above) or ``"raw"``: REINFORCE uses the reference
         code's unnormalised weighted average ``sum_k alpha_k (R^k_t - v^k(s_t)) / sum_k alpha_k`` (reference-compat
         switch). Dynamics backpropagation always uses A_t.
@@ -379,6 +390,7 @@ class ActorCritic(nn.Module):
         retnorm_percentiles: tuple[float, float] = (5.0, 95.0),
         retnorm_min_scale: float = 1.0,
         reinforce_advantage: str = "normalized",
+        return_normalization: str = "combined",
     ) -> None:
         super().__init__()
         if reinforce_advantage not in ("normalized", "raw"):
@@ -415,9 +427,25 @@ class ActorCritic(nn.Module):
         self.critics = nn.ModuleDict(
             {k: Critic(feat_dim, hidden, layers, slow_fraction, slow_reg) for k in self.reward_weights}
         )
+        if return_normalization not in RETURN_NORMALIZATIONS:
+            raise ValueError(
+                f"return_normalization must be one of {RETURN_NORMALIZATIONS}, got {return_normalization!r}"
+            )
+        self.return_normalization = return_normalization
+        names = self.reward_weights if return_normalization == "per_term" else ("combined",)
         self.normalizers = nn.ModuleDict(
-            {k: ReturnNormalizer(retnorm_decay, retnorm_percentiles, retnorm_min_scale) for k in self.reward_weights}
+            {k: ReturnNormalizer(retnorm_decay, retnorm_percentiles, retnorm_min_scale) for k in names}
         )
+
+    def return_scale(self, term: str) -> th.Tensor:
+        """The scale S that divides term ``term``'s advantage: its own (``"per_term"``) or the shared one.
+
+        :param term: an active reward term
+        :return: 0-d detached scale
+        """
+        if term not in self.reward_weights:
+            raise ValueError(f"term must be one of the active terms {self.active_terms}, got {term!r}")
+        return self.normalizers[term if self.return_normalization == "per_term" else "combined"].scale()
 
     @property
     def active_terms(self) -> tuple[str, ...]:
@@ -506,7 +534,8 @@ class ActorCritic(nn.Module):
         dynamics = self.gradient == "dynamics"
         metrics: dict[str, th.Tensor] = {}
         advantage = th.zeros_like(w)
-        raw_advantage = th.zeros_like(w)  # reinforce_advantage="raw" only
+        raw_advantage = th.zeros_like(w)  # sum_k alpha_k (R^k - v^k), unnormalised
+        mixed_returns = th.zeros_like(w)  # sum_k alpha_k R^k, the return of eq. 4.3's mixed reward
         critic_loss = feats.new_zeros(())
         for name, alpha in self.reward_weights.items():
             critic = self.critics[name]
@@ -521,10 +550,13 @@ class ActorCritic(nn.Module):
             returns = lambda_returns(
                 rewards[name][1:], values[:-1], continues[1:], values[-1], self.discount, self.lambda_
             )  # (H, *B)
-            _, scale = self.normalizers[name](returns, update=update_normalizers)
-            advantage = advantage + alpha * (returns - values[:-1]) / scale
-            if self.reinforce_advantage == "raw":
-                raw_advantage = raw_advantage + alpha * (returns - values[:-1])
+            raw_advantage = raw_advantage + alpha * (returns - values[:-1])
+            if self.return_normalization == "per_term":
+                _, scale = self.normalizers[name](returns, update=update_normalizers)
+                advantage = advantage + alpha * (returns - values[:-1]) / scale
+            else:
+                mixed_returns = mixed_returns + alpha * returns.detach()
+                scale = self.normalizers["combined"].scale()  # this batch's update follows below
             c_loss, c_metrics = critic.loss(feats_sg[:-1], returns.detach(), w, dist=fast)
             critic_loss = critic_loss + c_loss
             metrics[f"{name}/return_mean"] = returns.mean().detach()
@@ -532,6 +564,11 @@ class ActorCritic(nn.Module):
             metrics[f"{name}/return_scale"] = scale
             metrics[f"{name}/critic_loss"] = c_loss.detach()
             metrics[f"{name}/value_mean"] = c_metrics["value_mean"]
+        if self.return_normalization == "combined":
+            _, scale = self.normalizers["combined"](mixed_returns, update=update_normalizers)
+            advantage = raw_advantage / scale
+            for name in self.reward_weights:
+                metrics[f"{name}/return_scale"] = scale
         dist = self.actor(feats_sg[:-1])
         entropy = dist.entropy()  # (H, *B)
         if dynamics:

@@ -37,6 +37,7 @@ from torch import nn
 from sb3_hieros.agent.subactor import Replan, Subactor
 from sb3_hieros.agent.world_model import LatentState
 from sb3_hieros.config import HierosConfig
+from sb3_hieros.nn.networks import evaluation_mode
 from sb3_hieros.type_aliases import LevelRows, LevelUpdate, Observation, SequenceSamples
 
 __all__ = ["Hierarchy", "HierarchyState", "HierarchyStep"]
@@ -475,7 +476,8 @@ class Hierarchy(nn.Module):
         n = window.shape[0]
         first = carry is None
         is_first = th.full((n,), first, dtype=th.bool, device=window.device)
-        state = upper.observe_step(None if first else carry[0], self.observation_window(window), subgoal, is_first)
+        with evaluation_mode(upper.world_model):  # imagined states are observed without dropout, as in rollout
+            state = upper.observe_step(None if first else carry[0], self.observation_window(window), subgoal, is_first)
         if first:
             own_goal = None
             if level + 2 < self.n_levels:
@@ -492,7 +494,8 @@ class Hierarchy(nn.Module):
         window[:, -1] = encoded_below
         first = th.ones(n, dtype=th.bool, device=encoded_below.device)
         prev = encoded_below.new_zeros(n, upper.action_dim)
-        state = upper.observe_step(None, self.observation_window(window), prev, first)
+        with evaluation_mode(upper.world_model):
+            state = upper.observe_step(None, self.observation_window(window), prev, first)
         goal = None
         if level < self.n_levels - 1:
             goal = self._propose_fresh(level + 1, upper.encoded_observation(state))

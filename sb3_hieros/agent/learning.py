@@ -71,6 +71,7 @@ def level_actor_critic(
         unimix=ac.unimix,
         slow_fraction=ac.slow_critic_fraction,
         reinforce_advantage=config.reference.reinforce_advantage,
+        return_normalization=ac.return_normalization,
     )
 
 

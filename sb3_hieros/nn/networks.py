@@ -6,8 +6,9 @@ them on the output. Images are channel-first (C, H, W), as produced by SB3's ``V
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import torch as th
 from torch import nn
@@ -268,12 +269,29 @@ class ConvDecoder(nn.Module):
         return x.reshape(*lead, *self.out_shape)
 
 
+@contextlib.contextmanager
+def evaluation_mode(module: nn.Module) -> Iterator[None]:
+    """Within the block ``module`` is in evaluation mode (no dropout); its previous mode is restored afterwards.
+
+    Gradients still flow: this switches ``nn.Module.training`` only, unlike ``torch.no_grad``.
+
+    :param module: the module (and its children)
+    """
+    was_training = module.training
+    module.train(False)
+    try:
+        yield
+    finally:
+        module.train(was_training)
+
+
 __all__ = [
     "MLP",
     "ChannelLayerNorm",
     "ConvDecoder",
     "ConvEncoder",
     "conv_stack_sizes",
+    "evaluation_mode",
     "preprocess_image",
     "trunc_normal_init_",
 ]

@@ -47,7 +47,7 @@ from sb3_hieros.config import WorldModelConfig
 from sb3_hieros.nn.distributions import ContinueBernoulli, OneHotCategoricalST, TwoHotSymlog, symlog_bins
 from sb3_hieros.nn.guard import step_if_finite
 from sb3_hieros.nn.metrics import metric_floats
-from sb3_hieros.nn.networks import MLP
+from sb3_hieros.nn.networks import MLP, evaluation_mode
 from sb3_hieros.type_aliases import SequenceSamples
 
 __all__ = ["REWARD_BINS", "ObsDict", "WorldModel"]
@@ -544,7 +544,9 @@ class WorldModel(nn.Module):
         Every imagination in the library is this loop; its callers differ in ``step``: a level's actor with the
         subgoals of the levels above (:class:`~sb3_hieros.agent.hierarchy.Hierarchy`), all levels of one shared world
         model, a given policy (:meth:`imagine`), recorded actions (``ImaginationCallback``). It runs in step form with
-        one discretisation for the whole rollout (:meth:`reuse_step_weights`); the recurrent state is not detached
+        one discretisation for the whole rollout (:meth:`reuse_step_weights`) and without dropout, also when the model
+        is in training mode (dropout regularises the world-model loss; an imagined trajectory is a function of the
+        sampled latents and actions alone, and the mode is restored afterwards). The recurrent state is not detached
         between steps and ``start`` is not modified, so gradients flow back through the whole rollout (dynamics
         backpropagation). The inputs are trusted.
 
@@ -563,7 +565,7 @@ class WorldModel(nn.Module):
 
         states, actions = [stored(start)], []
         state = start
-        with self.reuse_step_weights():
+        with self.reuse_step_weights(), evaluation_mode(self):
             for t in range(horizon):
                 action = step(t, state)
                 actions.append(action)
@@ -608,10 +610,5 @@ class WorldModel(nn.Module):
             entropies.append(self.prior_entropy(state))
             return action.float()
 
-        was_training = self.training
-        self.train(False)
-        try:
-            states, _ = self.rollout(start, horizon, step, deterministic, keep_seq)
-        finally:
-            self.train(was_training)
+        states, _ = self.rollout(start, horizon, step, deterministic, keep_seq)
         return states, th.stack(actions, 0), th.stack(entropies, 0)

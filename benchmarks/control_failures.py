@@ -1,0 +1,443 @@
+"""Why a trained HIEROS agent does (or does not) learn a task: what each level does and believes, measured.
+
+The continuous-control counterpart of :mod:`benchmarks.cartpole_failures`, for any task of
+:mod:`benchmarks.suites`. It loads one or more saved models (``NAME=PATH`` to name them in the tables), plays
+``--episodes`` held-out episodes with the deterministic policy (the evaluation protocol) and as many with sampled
+actions (the training behaviour), and reports per model:
+
+* **returns** of both kinds of episodes;
+* **actions, per level**: level 0 (the environment action, in [-1, 1] for Box spaces): the mean and mean absolute
+  value of the deterministic action, the share of action entries at the bounds (``|a| > 0.95``), the policy's mean
+  std and the mean distance between the deterministic action and a sample at the same state. Levels above: how
+  often the subgoal changes when the level acts, and the entropy of its policy;
+* **world model** (level 0, on the held-out episodes): open-loop predictions over ``--horizon`` steps from the
+  posterior state at every ``--stride``-th step with the actions the agent actually took: mean absolute reward error
+  and the observation error relative to a repeat-the-last-observation baseline (vector observations);
+* **critic** (level 0, extrinsic term): its value at each visited state against the realised discounted return
+  (bootstrapped with the critic's value where an episode is cut by its time limit): means, bias and correlation;
+* **return normalisers**: the scale ``max(1, P95 - P5)`` of every reward term of every level;
+* **actor objective** (every level, from the posterior states of the sampled episodes, imagined as training does):
+  per reward term the spread of its normalised advantage and the gradient norm it puts on the actor's parameters,
+  and the share of each term (and of the entropy bonus) in the sum of those norms. For a level trained by dynamics
+  backpropagation also the norm of the gradient that reaches each imagined action, per imagined step;
+* for a model with an ``evaluations.npz`` or ``result.json`` beside it, nothing more: train with
+  :mod:`benchmarks.train` or :mod:`benchmarks.cpu_suite` and point this script at the saved models.
+
+Example (three models of one task, e.g. one level, two levels, two levels without the subgoal reward)::
+
+    python -m benchmarks.control_failures --suite dmc_proprio --task cartpole-balance --episodes 3 \\
+        one_level=runs/l1/model.zip two_levels=runs/l2/model.zip no_subgoal=runs/sg0/model.zip
+
+The last lines print each figure as ``model/name: value``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import os
+import pathlib
+from collections import defaultdict
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+
+from benchmarks._timing import environment_header
+from benchmarks.suites import SUITES, make_env
+from sb3_hieros import HIEROS
+from sb3_hieros.agent.returns import cumulative_discount, lambda_returns
+from sb3_hieros.agent.world_model import LatentState, stack_states
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+__all__ = [
+    "Episode",
+    "action_figures",
+    "actor_objective_figures",
+    "critic_figures",
+    "open_loop_figures",
+    "play",
+]
+
+#: An action entry counts as "at the bound" when its magnitude (in [-1, 1] units) exceeds this.
+AT_BOUND = 0.95
+
+
+@dataclass
+class Episode:
+    """What one played episode left behind (time-major lists, one entry per agent step)."""
+
+    observations: list[np.ndarray] = field(default_factory=list)
+    rewards: list[float] = field(default_factory=list)
+    #: level-0 action vectors actually taken ([-1, 1] for Box, one-hot for Discrete), each (A,)
+    actions: list[np.ndarray] = field(default_factory=list)
+    #: per level, the posterior state after each observation (levels with a world model of their own)
+    latents: dict[int, list[LatentState]] = field(default_factory=lambda: defaultdict(list))
+    #: per level i >= 1, the subgoal code in force after each step, each (S,)
+    codes: dict[int, list[th.Tensor]] = field(default_factory=lambda: defaultdict(list))
+    #: per level i >= 1, whether the level acted at each step
+    updated: dict[int, list[bool]] = field(default_factory=lambda: defaultdict(list))
+    #: level-0 deterministic action, a fresh sample and the policy std at each visited state, each (A,)
+    mode: list[np.ndarray] = field(default_factory=list)
+    sample: list[np.ndarray] = field(default_factory=list)
+    std: list[np.ndarray] = field(default_factory=list)
+    #: level-0 extrinsic value at each visited state
+    values: list[float] = field(default_factory=list)
+    truncated: bool = False
+
+    @property
+    def total(self) -> float:
+        """The episode's return."""
+        return float(np.sum(self.rewards))
+
+
+def _level_goal(hierarchy: Any, level: int, codes: Sequence[th.Tensor]) -> th.Tensor | None:
+    """The subgoal level ``level`` sees (its feature form), or None at the top level."""
+    if level == hierarchy.n_levels - 1:
+        return None
+    return hierarchy.levels[level].goal_features(codes[level + 1])
+
+
+@th.no_grad()
+def play(model: HIEROS, env: Any, seed: int, deterministic: bool) -> Episode:
+    """One episode with the hierarchy's recurrent state threaded (the acting path of ``predict``).
+
+    :param model: the agent
+    :param env: a gymnasium env of the task the model was trained on
+    :param seed: seed of ``env.reset``
+    :param deterministic: policy modes instead of samples
+    :return: the episode's record
+    """
+    policy = model.policy
+    hierarchy = policy.hierarchy
+    level0 = hierarchy.levels[0]
+    ac0 = level0.actor_critic
+    obs, _ = env.reset(seed=seed)
+    state = hierarchy.initial_state(1)
+    first = np.ones(1, dtype=bool)
+    episode = Episode()
+    while True:
+        batch = obs[None] if isinstance(obs, np.ndarray) else {k: v[None] for k, v in obs.items()}
+        tensor, _ = policy.obs_to_tensor(batch)
+        state, step = hierarchy.step(state, tensor, first, deterministic)
+        first = np.zeros(1, dtype=bool)
+        for i, latent in enumerate(state.latents):
+            episode.latents[i].append(latent)
+        for i in range(1, hierarchy.n_levels):
+            episode.codes[i].append(state.actions[i][0])
+            episode.updated[i].append(bool(step.updated[i][0]))
+        goal = _level_goal(hierarchy, 0, state.actions)
+        feat, _, _ = level0.features(state.latents[0], goal)
+        dist = ac0.actor(feat)
+        episode.mode.append(dist.mode()[0].float().numpy().reshape(-1))
+        episode.sample.append(dist.sample()[0].float().numpy().reshape(-1))
+        if hasattr(dist, "std"):
+            episode.std.append(dist.std[0].float().numpy())
+        episode.values.append(float(ac0.critics["extrinsic"].value(feat)[0]) if "extrinsic" in ac0.critics else 0.0)
+        episode.observations.append(np.asarray(obs, dtype=np.float64) if isinstance(obs, np.ndarray) else obs)
+        episode.actions.append(state.actions[0][0].float().numpy())
+        action = policy.env_actions(state.actions[0])[0]
+        obs, reward, terminated, truncated, _ = env.step(action)
+        episode.rewards.append(float(reward))
+        if terminated or truncated:
+            episode.truncated = bool(truncated and not terminated)
+            return episode
+
+
+def action_figures(model: HIEROS, episodes: Sequence[Episode]) -> dict[str, float]:
+    """Level-0 action statistics and, per level above, how often the subgoal changes.
+
+    :param model: the agent that played ``episodes``
+    :param episodes: episodes played by :func:`play`
+    :return: figures
+    """
+    out: dict[str, float] = {}
+    mode = np.concatenate([np.stack(e.mode) for e in episodes])
+    sample = np.concatenate([np.stack(e.sample) for e in episodes])
+    if isinstance(model.action_space, spaces.Box):
+        out["level0/mode_mean"] = float(mode.mean())
+        out["level0/mode_abs_mean"] = float(np.abs(mode).mean())
+        out["level0/at_bounds"] = float((np.abs(mode) > AT_BOUND).mean())
+        out["level0/policy_std"] = float(np.concatenate([np.stack(e.std) for e in episodes]).mean())
+        out["level0/mode_sample_distance"] = float(np.abs(mode - sample).mean())
+    else:
+        out["level0/mode_sample_disagree"] = float((mode.argmax(-1) != sample.argmax(-1)).mean())
+    for i in range(1, model.policy.hierarchy.n_levels):
+        changes, acts = 0, 0
+        for e in episodes:
+            codes = e.codes[i]
+            for t in range(1, len(codes)):
+                if e.updated[i][t]:
+                    acts += 1
+                    changes += int(not th.equal(codes[t], codes[t - 1]))
+        out[f"level{i}/subgoal_change_rate"] = changes / max(acts, 1)
+    return out
+
+
+@th.no_grad()
+def open_loop_figures(model: HIEROS, episodes: Sequence[Episode], horizon: int, stride: int) -> dict[str, float]:
+    """Level 0's open-loop reward and observation errors with the actions actually taken.
+
+    From the posterior state s_t the world model imagines s_{t+1} .. s_{t+H} with the actions a_t .. a_{t+H-1};
+    the reward head at s_{t+j} predicts the reward of arriving at o_{t+j}, the decoder o_{t+j}.
+
+    :param model: the agent
+    :param episodes: held-out episodes
+    :param horizon: open-loop steps H
+    :param stride: a start every ``stride`` steps
+    :return: ``world_model/reward_mae``, ``world_model/reward_abs_mean`` (the scale of the rewards) and, for vector
+        observations, ``world_model/obs_error_vs_repeat_last``
+    """
+    wm = model.policy.hierarchy.levels[0].world_model
+    reward_err, reward_abs, obs_err, base_err = [], [], [], []
+    vector = isinstance(model.observation_space, spaces.Box) and len(model.observation_space.shape) == 1
+    for e in episodes:
+        for t in range(0, len(e.rewards) - horizon, stride):
+            state = e.latents[0][t]
+            for j in range(horizon):
+                action = th.as_tensor(e.actions[t + j], dtype=th.float32)[None]
+                state, _ = wm.img_step(state, action, deterministic=True)
+                reward_err.append(abs(float(wm.reward(state)[0]) - e.rewards[t + j]))
+                reward_abs.append(abs(e.rewards[t + j]))
+                if vector and t + j + 1 < len(e.observations):
+                    target = e.observations[t + j + 1]
+                    pred = wm.decode(state)[0].double().numpy()
+                    obs_err.append(float(((pred - target) ** 2).mean()))
+                    base_err.append(float(((e.observations[t] - target) ** 2).mean()))
+    out = {
+        "world_model/reward_mae": float(np.mean(reward_err)),
+        "world_model/reward_abs_mean": float(np.mean(reward_abs)),
+    }
+    if obs_err:
+        out["world_model/obs_error_vs_repeat_last"] = float(np.mean(obs_err) / max(np.mean(base_err), 1e-12))
+    return out
+
+
+def critic_figures(model: HIEROS, episodes: Sequence[Episode]) -> dict[str, float]:
+    """Level 0's extrinsic value at each visited state against the realised discounted return.
+
+    :param model: the agent
+    :param episodes: held-out episodes
+    :return: mean value, mean return, bias (value - return) and their correlation
+    """
+    gamma = model.policy.hierarchy.levels[0].actor_critic.discount
+    values, returns = [], []
+    for e in episodes:
+        g = e.values[-1] if e.truncated else 0.0
+        realised = []
+        for r in reversed(e.rewards):
+            g = r + gamma * g
+            realised.append(g)
+        values += e.values
+        returns += realised[::-1]
+    v, r = np.array(values), np.array(returns)
+    corr = float(np.corrcoef(v, r)[0, 1]) if v.std() > 0 and r.std() > 0 else float("nan")
+    return {
+        "critic/value_mean": float(v.mean()),
+        "critic/return_mean": float(r.mean()),
+        "critic/bias": float((v - r).mean()),
+        "critic/correlation": corr,
+    }
+
+
+def normaliser_figures(model: HIEROS) -> dict[str, float]:
+    """The return scale of every reward term of every level."""
+    out = {}
+    hierarchy = model.policy.hierarchy
+    for i in range(hierarchy.n_levels):
+        ac = hierarchy.levels[i].actor_critic
+        for name in ac.active_terms:
+            out[f"level{i}/return_scale/{name}"] = float(ac.return_scale(name))
+    return out
+
+
+@contextlib.contextmanager
+def _recorded_samples(actor: th.nn.Module) -> Iterator[list[th.Tensor]]:
+    """Within the block, every action sampled from ``actor``'s distributions is appended to the yielded list (the
+    per-step tensors the imagined rollout is built from, so gradients can be taken with respect to them)."""
+    drawn: list[th.Tensor] = []
+    forward = actor.forward
+
+    def recording(*args: Any, **kwargs: Any) -> Any:
+        dist = forward(*args, **kwargs)
+        sample = dist.sample
+
+        def sample_and_record(*a: Any, **k: Any) -> th.Tensor:
+            x = sample(*a, **k)
+            drawn.append(x)
+            return x
+
+        dist.sample = sample_and_record
+        return dist
+
+    actor.forward = recording
+    try:
+        yield drawn
+    finally:
+        del actor.forward
+
+
+def _grad_norm(loss: th.Tensor, params: Sequence[th.Tensor]) -> float:
+    grads = th.autograd.grad(loss, params, retain_graph=True, allow_unused=True)
+    return math.sqrt(sum(float((g.float() ** 2).sum()) for g in grads if g is not None))
+
+
+def actor_objective_figures(model: HIEROS, episodes: Sequence[Episode], max_starts: int = 512) -> dict[str, float]:
+    """Per level, how much each reward term (and the entropy bonus) pulls on the actor (eq. 4.3, 4.9).
+
+    The posterior states of ``episodes`` start imagined rollouts of ``imag_horizon`` steps as in training, with the
+    subgoal in force at each state held fixed. Each active term k contributes ``alpha_k (R^k - v^k) / S_k`` to the
+    advantage; the figure ``grad_share/<k>`` is the norm of the gradient of its weighted mean on the actor's
+    parameters, divided by the sum of those norms over the terms and the entropy bonus.
+
+    :param model: the agent
+    :param episodes: episodes whose states start the rollouts (sampled actions, as in training)
+    :param max_starts: at most this many start states (drawn without replacement)
+    :return: figures
+    """
+    policy = model.policy
+    hierarchy = policy.hierarchy
+    out: dict[str, float] = {}
+    generator = th.Generator().manual_seed(0)
+    for i in range(len(episodes[0].latents)):
+        level = hierarchy.levels[i]
+        ac = level.actor_critic
+        latents = [
+            s
+            for e in episodes
+            for s, up in zip(e.latents[i], e.updated[i] if i else [True] * len(e.latents[i]), strict=True)
+            if up
+        ]
+        codes = None
+        if i < hierarchy.n_levels - 1:
+            codes = th.stack(
+                [
+                    c
+                    for e in episodes
+                    for c, up in zip(e.codes[i + 1], e.updated[i] if i else [True] * len(e.codes[i + 1]), strict=True)
+                    if up
+                ]
+            )
+        start = stack_states(latents, 0).flatten_batch()
+        n = int(start.batch_shape[0])
+        chosen = th.randperm(n, generator=generator)[:max_starts]
+        start = start.select(chosen).detach()
+        if codes is not None:
+            codes = codes[chosen]
+        dynamics = level.imag_gradient == "dynamics"
+        policy.set_training_mode(True)
+        with th.enable_grad(), _recorded_samples(ac.actor) as drawn:
+            imagined = level.imagine(start, codes)
+            rewards = level.imagined_rewards(imagined)
+            feats, actions, cont = imagined.features, imagined.actions, imagined.continues
+            continues = th.cat([th.ones_like(cont[:1]), cont[1:].detach()], 0)
+            w = cumulative_discount(continues, ac.discount)[:-1]
+            params = list(ac.actor_parameters())
+            dist = ac.actor(feats.detach()[:-1])
+            norms, total = {}, 0.0
+            for name, alpha in ac.reward_weights.items():
+                critic = ac.critics[name]
+                values = critic.value(feats, detach_params=True) if dynamics else critic.value(feats.detach()).detach()
+                returns = lambda_returns(
+                    rewards[name][1:], values[:-1], continues[1:], values[-1], ac.discount, ac.lambda_
+                )
+                advantage = alpha * (returns - values[:-1]) / ac.return_scale(name)
+                objective = advantage if dynamics else dist.log_prob(actions.detach()) * advantage.detach()
+                term = -(w * objective).mean()
+                total = total + term
+                norms[name] = _grad_norm(term, params)
+                out[f"level{i}/advantage_std/{name}"] = float(advantage.detach().std())
+            entropy_term = -(w * ac.entropy_coef * dist.entropy()).mean()
+            norms["entropy"] = _grad_norm(entropy_term, params)
+            if dynamics:
+                grads = th.autograd.grad(total + entropy_term, drawn)  # per imagined step, (N, A)
+                per_step = [float(g.reshape(g.shape[0], -1).norm(dim=-1).mean()) for g in grads]
+                out[f"level{i}/action_grad_first"] = float(per_step[0])
+                out[f"level{i}/action_grad_last"] = float(per_step[-1])
+        policy.set_training_mode(False)
+        norm_sum = sum(norms.values()) or 1.0
+        for name, value in norms.items():
+            out[f"level{i}/grad_norm/{name}"] = value
+            out[f"level{i}/grad_share/{name}"] = value / norm_sum
+    return out
+
+
+def analyse(
+    model: HIEROS, suite: str, task: str, episodes: int, seed: int, horizon: int, stride: int
+) -> dict[str, float]:
+    """Every figure of the module docstring for one model.
+
+    :return: name -> value
+    """
+    env = make_env(suite, task, seed=seed)
+    th.manual_seed(seed)
+    greedy = [play(model, env, seed + j, True) for j in range(episodes)]
+    sampled = [play(model, env, seed + episodes + j, False) for j in range(episodes)]
+    env.close()
+    out = {
+        "return/deterministic": float(np.mean([e.total for e in greedy])),
+        "return/sampled": float(np.mean([e.total for e in sampled])),
+    }
+    out.update(action_figures(model, greedy))
+    out.update(open_loop_figures(model, greedy, horizon, stride))
+    out.update(critic_figures(model, greedy))
+    out.update(normaliser_figures(model))
+    out.update(actor_objective_figures(model, sampled))
+    return out
+
+
+def _named_models(items: Sequence[str]) -> list[tuple[str, pathlib.Path]]:
+    named = []
+    for item in items:
+        name, _, path = item.rpartition("=") if "=" in item else (pathlib.Path(item).parent.name, "", item)
+        if not pathlib.Path(path).exists():
+            raise ValueError(f"model file {path!r} does not exist (argument {item!r}; expected PATH or NAME=PATH)")
+        named.append((name or path, pathlib.Path(path)))
+    if len({n for n, _ in named}) != len(named):
+        raise ValueError(f"model names must be distinct, got {[n for n, _ in named]}")
+    return named
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, dict[str, float]]:
+    """Analyse every model given and print one table with a column per model, then ``model/name: value`` lines.
+
+    :return: model name -> figures
+    """
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("models", nargs="+", help="HIEROS saves, as PATH or NAME=PATH")
+    parser.add_argument("--suite", required=True, choices=sorted(SUITES))
+    parser.add_argument("--task", required=True)
+    parser.add_argument("--episodes", type=int, default=3, help="deterministic and sampled episodes each")
+    parser.add_argument("--seed", type=int, default=20_000, help="seed of the first held-out episode")
+    parser.add_argument("--horizon", type=int, default=15, help="open-loop steps of the world-model check")
+    parser.add_argument("--stride", type=int, default=10, help="steps between two open-loop starts")
+    args = parser.parse_args(argv)
+    for name in ("episodes", "horizon", "stride"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name} must be >= 1, got {getattr(args, name)}")
+    models = _named_models(args.models)
+    print(environment_header())
+    th.set_num_threads(1)
+    results = {}
+    for name, path in models:
+        model = HIEROS.load(path, device="cpu")
+        results[name] = analyse(model, args.suite, args.task, args.episodes, args.seed, args.horizon, args.stride)
+    keys = sorted({k for r in results.values() for k in r})
+    print("\n| figure | " + " | ".join(results) + " |\n|---|" + "---:|" * len(results))
+    for key in keys:
+        cells = [f"{r[key]:.4g}" if key in r else "-" for r in results.values()]
+        print(f"| {key} | " + " | ".join(cells) + " |")
+    print()
+    for name, figures in results.items():
+        for key, value in figures.items():
+            print(f"{name}/{key}: {value:g}")
+    return results
+
+
+if __name__ == "__main__":
+    main()
