@@ -99,7 +99,8 @@ _NO_HIEROS_MEANING = {
     "gae_lambda": "the lambda of the returns is config_overrides={'actor_critic': {'lambda_': ...}}",
     "clip_range": "HIEROS's actor is trained in imagination (REINFORCE or dynamics backpropagation), not clipped",
     "clip_range_vf": "HIEROS's actor is trained in imagination (REINFORCE or dynamics backpropagation), not clipped",
-    "normalize_advantage": "returns are normalised per reward term: config_overrides={'actor_critic': ...}",
+    "normalize_advantage": "advantages are normalised by their returns' scale: config_overrides="
+    "{'actor_critic': {'return_normalization': 'per_term' or 'combined'}}",
     "vf_coef": "the critics have optimisers of their own: config_overrides={'actor_critic': {'critic_lr': ...}}",
     "target_kl": "HIEROS's actor is trained in imagination (REINFORCE or dynamics backpropagation), not clipped",
 }

@@ -73,7 +73,7 @@ def test_labels_argument_and_its_checks(tmp_path):
         SubgoalDecodeCallback(every=10, save_dir=tmp_path, renderer="pygame")
 
     dict_model = HIEROS("MultiInputPolicy", SmallDictEnv(discrete=True), **tiny_kwargs())
-    with pytest.raises(ValueError, match="not vector keys"):
+    with pytest.raises(ValueError, match="not vector or discrete keys"):
         dict_model.learn(5, callback=SubgoalDecodeCallback(every=10, save_dir=tmp_path, labels={"img": ["a"]}))
     callback = SubgoalDecodeCallback(every=10, save_dir=tmp_path, tensorboard=False)
     dict_model.learn(10, callback=callback)

@@ -218,8 +218,11 @@ class SequenceReplayBuffer(ReplayBuffer):
         return np.where(self.stream_full, self.buffer_size, self.stream_pos)
 
     def size(self) -> int:
-        """:return: number of steps (rows) stored over all env streams (SB3's buffers count the rows of one env, as
-        all their streams have the same length; here streams differ, see the module docstring)"""
+        """Rows stored over all env streams. SB3's buffers count the rows of one env, as all their streams have the
+        same length; here streams differ (see the module docstring).
+
+        :return: number of steps (rows) stored over all env streams
+        """
         return int(self.stored_steps().sum())
 
     def valid_starts(self) -> np.ndarray:
