@@ -10,8 +10,11 @@
 Hyperparameters: ``preset`` (``"paper"`` = thesis 4.6.3, ``"small"`` = CPU) gives every value, ``config_overrides``
 (a dict for :meth:`HierosConfig.replace`, nested sections as dicts, e.g. ``{"world_model": {"s5_layers": 4}}``)
 changes any field, and SB3's standard keywords ``learning_rate`` (the world models' learning rate, float or SB3
-schedule, with the linear warm-up of ``world_model.warmup`` updates on top), ``buffer_size``, ``learning_starts`` and
-``batch_size`` win over both. The :class:`HierosConfig` is rebuilt from these in ``_setup_model`` (also on ``load``).
+schedule, with the linear warm-up of ``world_model.warmup`` updates on top), ``buffer_size``, ``learning_starts``,
+``batch_size``, ``gamma`` (``actor_critic.discount``) and ``policy_kwargs["net_arch"]`` (the actor's and critics'
+sizes) win over both. The :class:`HierosConfig` is rebuilt from these in ``_setup_model`` (also on ``load``). SB3
+keywords without a HIEROS meaning (``train_freq``, ``gradient_steps``, ``action_noise``, ...) raise a ``ValueError``
+that says what HIEROS uses instead.
 
 Training schedule: ``train_ratio`` is DreamerV3's replayed steps per environment step: level 0 makes
 ``train_ratio * n_envs / (batch_size * batch_length)`` updates per vec-env step (the fraction is carried over), and
