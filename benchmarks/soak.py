@@ -251,7 +251,7 @@ class FaultCheckpoint(BaseCallback):
     def _on_rollout_end(self) -> None:
         model = self.model
         cfg = model.config  # type: ignore[attr-defined]
-        due = model._update_budget + model.n_envs * cfg.train_ratio / (cfg.batch_size * cfg.batch_length)  # type: ignore[attr-defined]
+        due = model.update_budget + model.n_envs * cfg.train_ratio / (cfg.batch_size * cfg.batch_length)  # type: ignore[attr-defined]
         if model.num_timesteps > model.learning_starts and due >= 1.0:  # type: ignore[attr-defined]
             _say("TRAIN", model.num_timesteps)
 

@@ -82,6 +82,17 @@ def test_hierarchy_depths_train(n_levels):
         assert 0 < updates[i] <= -(-updates[0] // 2**i)
 
 
+def test_update_budget_carries_fractions_of_updates():
+    # tiny run: train_ratio 4 / (batch 2 x length 8) = 0.25 level-0 updates per vec-env step
+    model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs())
+    model.learn(40)
+    before, done = model.update_budget, model.level_updates()[0]
+    assert 0.0 <= before < 1.0 and done > 0
+    model.train(gradient_steps=3, batch_size=2)
+    assert model.update_budget == pytest.approx((before + 0.75) % 1.0)
+    assert model.level_updates()[0] == done + int(before + 0.75)
+
+
 def test_multi_env_and_progress_bar():
     env = make_vec_env("CartPole-v1", n_envs=3, seed=0)
     model = HIEROS("MlpPolicy", env, **tiny_kwargs())
