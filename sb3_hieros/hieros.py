@@ -34,6 +34,7 @@ one level in a row raise ``FloatingPointError``; saves are written atomically an
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import pathlib
 import pickle
@@ -56,7 +57,7 @@ from sb3_hieros.agent.hierarchy import HierarchyState
 from sb3_hieros.agent.world_model import set_world_model_lr
 from sb3_hieros.buffers import DictSequenceReplayBuffer, ETBSReplayBuffer, SequenceReplayBuffer
 from sb3_hieros.buffers.levels import HigherLevelRows, SubgoalTransitions, make_level_buffers
-from sb3_hieros.config import HierosConfig, get_preset
+from sb3_hieros.config import HierosConfig, config_from_dict, get_preset
 from sb3_hieros.keywords import CONFIG_ONLY, actor_critic_sizes, refuse_keywords
 from sb3_hieros.nn.guard import count_nonfinite, nonfinite_error
 from sb3_hieros.policies import CnnPolicy, HierosPolicy, MlpPolicy, MultiInputPolicy
@@ -185,6 +186,8 @@ class HIEROS(OffPolicyAlgorithm):
         self._subgoal0: np.ndarray | None = None
         # update schedule (saved)
         self._update_budget = 0.0
+        # the resolved configuration as plain values, saved with the model so that it loads as it was trained
+        self._config_fields: dict[str, Any] | None = None
         self._level_updates: list[int] | None = None
         # non-finite guard, per level: updates with a skipped optimiser step (total and current run of them)
         self._skipped_updates: list[int] | None = None
@@ -204,8 +207,12 @@ class HIEROS(OffPolicyAlgorithm):
     # ------------------------------------------------------------------------------------------------ setup
 
     def _build_config(self) -> HierosConfig:
-        """The configuration from preset, ``config_overrides`` and SB3's keywords (see the module docstring)."""
-        config = get_preset(self.preset).replace(**self.config_overrides)
+        """The configuration from preset, ``config_overrides`` and SB3's keywords (see the module docstring). A loaded
+        model starts from the configuration it was saved with instead of the preset, so that a later change of a
+        preset's values does not change it."""
+        saved = self._config_fields
+        base = config_from_dict(saved) if saved is not None else get_preset(self.preset)
+        config = base.replace(**self.config_overrides)
         # saves of models built when these were constructor keywords hold them as attributes
         legacy = {name: self.__dict__[name] for name in CONFIG_ONLY if name in self.__dict__}
         keywords = {name: getattr(self, name) for name in ("buffer_size", "learning_starts", "batch_size")}
@@ -220,6 +227,7 @@ class HIEROS(OffPolicyAlgorithm):
         self._setup_lr_schedule()
         self.set_random_seed(self.seed)
         self.config = self._build_config()
+        self._config_fields = dataclasses.asdict(self.config)
         self.gamma = self.config.actor_critic.discount
         self._convert_train_freq()
         policy_kwargs = {name: value for name, value in self.policy_kwargs.items() if name != "net_arch"}

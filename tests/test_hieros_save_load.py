@@ -12,7 +12,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.envs import FakeImageEnv
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sb3_hieros import HIEROS, CnnPolicy, MlpPolicy
+from sb3_hieros import HIEROS, CnnPolicy, MlpPolicy, config
 
 
 def _assert_same_params(a: dict, b: dict) -> None:
@@ -60,6 +60,20 @@ def test_save_load_same_predictions_and_parameters(trained):
     # training resumes with an empty replay (training is guarded until level 0 can sample)
     loaded.learn(30)
     assert loaded.num_timesteps == 30
+
+
+@pytest.mark.parametrize("safe", [False, True])
+def test_load_keeps_the_saved_configuration(trained, monkeypatch, safe):
+    # a later change of the preset's values must not change a saved model
+    model, path = trained
+    changed = {"actor_critic": {"entropy": 0.5}, "world_model": {"free_bits": 0.25}}
+    small = config.PRESETS["small"]
+    monkeypatch.setitem(config.PRESETS, "small", lambda: small().replace(**changed))
+    assert HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs()).config.actor_critic.entropy == 0.5
+    loaded = HIEROS.load(path / "model.zip", env=gym.make("CartPole-v1") if safe else None, safe=safe)
+    assert loaded.config == model.config
+    # keywords given to load still win, as SB3's load sets them before the model is built
+    assert HIEROS.load(path / "model.zip", learning_starts=3).config.learning_starts == 3
 
 
 def test_torch_save_params_layout(trained):
