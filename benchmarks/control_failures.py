@@ -13,6 +13,12 @@ actions (the training behaviour), and reports per model:
 * **world model** (level 0, on the held-out episodes): open-loop predictions over ``--horizon`` steps from the
   posterior state at every ``--stride``-th step with the actions the agent actually took: mean absolute reward error
   and the observation error relative to a repeat-the-last-observation baseline (vector observations);
+* **action response** (level 0, Box actions, on the held-out episodes): from every ``--stride``-th state the real
+  environment (a copy of it) and the world model (open loop from the posterior state) are driven for
+  ``--response-steps`` steps with the action held at +1 and at -1; the regression slope of the model's difference
+  (+1 minus -1) onto the environment's, per observation entry (vector observations) and for the reward, with the
+  correlation of the reward differences. A slope of 1 is a model that responds to actions as the environment does,
+  0 one that ignores them: the actor learns by back-propagating through these differences;
 * **critic** (level 0, extrinsic term): its value at each visited state against the realised discounted return
   (bootstrapped with the critic's value where an episode is cut by its time limit): means, bias and correlation;
 * **return normalisers**: the scale ``max(1, P95 - P5)`` of every reward term of every level;
@@ -40,6 +46,7 @@ import os
 import pathlib
 from collections import defaultdict
 from collections.abc import Iterator, Sequence
+from copy import deepcopy
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -58,6 +65,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 __all__ = [
     "Episode",
     "action_figures",
+    "action_response_figures",
     "actor_objective_figures",
     "critic_figures",
     "open_loop_figures",
@@ -218,6 +226,83 @@ def open_loop_figures(model: HIEROS, episodes: Sequence[Episode], horizon: int, 
     return out
 
 
+def _slope(model_diff: np.ndarray, env_diff: np.ndarray) -> float:
+    """Least-squares slope of the model's differences onto the environment's (through the origin)."""
+    denominator = float((env_diff**2).sum())
+    return float((model_diff * env_diff).sum() / denominator) if denominator > 0 else float("nan")
+
+
+@th.no_grad()
+def action_response_figures(
+    model: HIEROS, suite: str, task: str, seeds: Sequence[int], episodes: Sequence[Episode], steps: int, stride: int
+) -> dict[str, float]:
+    """How strongly level 0's world model responds to its actions, against the real environment.
+
+    Each episode is replayed in a fresh environment (same seed, the recorded actions); at every ``stride``-th step a
+    copy of the environment and the world model (from the posterior state, open loop, deterministic) are driven
+    ``steps`` steps with the action held at +1 and at -1 (the bounds of a Box action space).
+
+    :param model: the agent that played ``episodes``
+    :param suite: suite of the task (for :func:`benchmarks.suites.make_env`)
+    :param task: the task
+    :param seeds: the reset seed of each episode
+    :param episodes: episodes played by :func:`play`
+    :param steps: steps of each driven branch
+    :param stride: a start every ``stride`` steps
+    :return: ``world_model/action_slope_obs{d}`` per entry of a vector observation, ``world_model/action_slope_reward``
+        and ``world_model/action_corr_reward``; nothing for other action spaces
+    """
+    if not isinstance(model.action_space, spaces.Box):
+        return {}
+    policy = model.policy
+    wm = policy.hierarchy.levels[0].world_model
+    vector = isinstance(model.observation_space, spaces.Box) and len(model.observation_space.shape) == 1
+    n_act = int(np.prod(model.action_space.shape))
+    held = {sign: th.full((1, n_act), float(sign)) for sign in (1, -1)}
+    env_obs, wm_obs, env_rew, wm_rew = [], [], [], []
+    for seed, e in zip(seeds, episodes, strict=True):
+        env = make_env(suite, task, seed=seed)
+        env.reset(seed=seed)
+        for t, action in enumerate(e.actions[: len(e.rewards) - steps]):
+            if t % stride == 0:
+                branches = {}
+                for sign, act in held.items():
+                    copy, state = deepcopy(env), e.latents[0][t]
+                    real_o, real_r, model_o, model_r = [], [], [], []
+                    for _ in range(steps):
+                        obs, reward, *_ = copy.step(policy.env_actions(act)[0])
+                        state, _ = wm.img_step(state, act, deterministic=True)
+                        real_r.append(float(reward))
+                        model_r.append(float(wm.reward(state)[0]))
+                        if vector:
+                            real_o.append(np.asarray(obs, dtype=np.float64))
+                            model_o.append(wm.decode(state)[0].double().numpy())
+                    copy.close()
+                    branches[sign] = (real_o, real_r, model_o, model_r)
+                plus, minus = branches[1], branches[-1]
+                env_rew += list(np.subtract(plus[1], minus[1]))
+                wm_rew += list(np.subtract(plus[3], minus[3]))
+                if vector:
+                    env_obs += list(np.subtract(plus[0], minus[0]))
+                    wm_obs += list(np.subtract(plus[2], minus[2]))
+            _, reward, *_ = env.step(policy.env_actions(th.as_tensor(action, dtype=th.float32)[None])[0])
+            if not math.isclose(float(reward), e.rewards[t], rel_tol=1e-6, abs_tol=1e-9):
+                raise RuntimeError(
+                    f"{task}: replaying the episode of seed {seed} gave reward {float(reward)!r} at step {t} where it "
+                    f"gave {e.rewards[t]!r}; the action response needs an environment that replays deterministically"
+                )
+        env.close()
+    real_r, model_r = np.array(env_rew), np.array(wm_rew)
+    out = {"world_model/action_slope_reward": _slope(model_r, real_r)}
+    spread = real_r.std() > 0 and model_r.std() > 0
+    out["world_model/action_corr_reward"] = float(np.corrcoef(model_r, real_r)[0, 1]) if spread else float("nan")
+    if env_obs:
+        real_o, model_o = np.stack(env_obs), np.stack(wm_obs)  # (starts * steps, D)
+        for d in range(real_o.shape[1]):
+            out[f"world_model/action_slope_obs{d}"] = _slope(model_o[:, d], real_o[:, d])
+    return out
+
+
 def critic_figures(model: HIEROS, episodes: Sequence[Episode]) -> dict[str, float]:
     """Level 0's extrinsic value at each visited state against the realised discounted return.
 
@@ -368,7 +453,7 @@ def actor_objective_figures(model: HIEROS, episodes: Sequence[Episode], max_star
 
 
 def analyse(
-    model: HIEROS, suite: str, task: str, episodes: int, seed: int, horizon: int, stride: int
+    model: HIEROS, suite: str, task: str, episodes: int, seed: int, horizon: int, stride: int, response_steps: int
 ) -> dict[str, float]:
     """Every figure of the module docstring for one model.
 
@@ -385,6 +470,8 @@ def analyse(
     }
     out.update(action_figures(model, greedy))
     out.update(open_loop_figures(model, greedy, horizon, stride))
+    seeds = [seed + j for j in range(episodes)]
+    out.update(action_response_figures(model, suite, task, seeds, greedy, response_steps, stride))
     out.update(critic_figures(model, greedy))
     out.update(normaliser_figures(model))
     out.update(actor_objective_figures(model, sampled))
@@ -416,17 +503,20 @@ def main(argv: Sequence[str] | None = None) -> dict[str, dict[str, float]]:
     parser.add_argument("--seed", type=int, default=20_000, help="seed of the first held-out episode")
     parser.add_argument("--horizon", type=int, default=15, help="open-loop steps of the world-model check")
     parser.add_argument("--stride", type=int, default=10, help="steps between two open-loop starts")
+    parser.add_argument("--response-steps", type=int, default=5, help="steps of each action-response branch")
     args = parser.parse_args(argv)
-    for name in ("episodes", "horizon", "stride"):
+    for name in ("episodes", "horizon", "stride", "response_steps"):
         if getattr(args, name) < 1:
-            raise ValueError(f"--{name} must be >= 1, got {getattr(args, name)}")
+            raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     models = _named_models(args.models)
     print(environment_header())
     th.set_num_threads(1)
     results = {}
     for name, path in models:
         model = HIEROS.load(path, device="cpu")
-        results[name] = analyse(model, args.suite, args.task, args.episodes, args.seed, args.horizon, args.stride)
+        results[name] = analyse(
+            model, args.suite, args.task, args.episodes, args.seed, args.horizon, args.stride, args.response_steps
+        )
     keys = sorted({k for r in results.values() for k in r})
     print("\n| figure | " + " | ".join(results) + " |\n|---|" + "---:|" * len(results))
     for key in keys:

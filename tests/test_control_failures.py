@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import math
+from copy import deepcopy
+from typing import Any, NamedTuple
 
+import numpy as np
 import pytest
+import torch as th
 from hieros_helpers import tiny_kwargs
 
 from benchmarks import control_failures
+from benchmarks.suites import make_env
 from sb3_hieros import HIEROS
 
 
@@ -26,7 +31,21 @@ def pendulum_models(tmp_path_factory):
 def test_every_figure_of_both_models(pendulum_models, capsys):
     args = [f"{name}={path}" for name, path in pendulum_models.items()]
     results = control_failures.main(
-        [*args, "--suite", "classic", "--task", "Pendulum-v1", "--episodes", "1", "--horizon", "3", "--stride", "50"]
+        [
+            *args,
+            "--suite",
+            "classic",
+            "--task",
+            "Pendulum-v1",
+            "--episodes",
+            "1",
+            "--horizon",
+            "3",
+            "--stride",
+            "50",
+            "--response-steps",
+            "2",
+        ]
     )
     assert set(results) == {"one", "two"}
     for figures in results.values():
@@ -36,6 +55,10 @@ def test_every_figure_of_both_models(pendulum_models, capsys):
         shares = [v for k, v in figures.items() if k.startswith("level0/grad_share/")]
         assert math.isclose(sum(shares), 1.0, rel_tol=1e-6)
         assert figures["world_model/reward_mae"] >= 0.0
+        # Pendulum's observation is (cos, sin, angular velocity): one slope per entry, and the reward's
+        slopes = [k for k in figures if k.startswith("world_model/action_slope_obs")]
+        assert len(slopes) == 3 and all(math.isfinite(figures[k]) for k in slopes)
+        assert math.isfinite(figures["world_model/action_slope_reward"])
     # the two-level model has a subgoal term at level 0 and a level above whose subgoals change or not
     assert "level0/grad_share/subgoal" in results["two"] and "level0/grad_share/subgoal" not in results["one"]
     assert 0.0 <= results["two"]["level1/subgoal_change_rate"] <= 1.0
@@ -53,3 +76,42 @@ def test_argument_checks(pendulum_models, tmp_path):
     same = [f"a={pendulum_models['one']}", f"a={pendulum_models['two']}"]
     with pytest.raises(ValueError, match="distinct"):
         control_failures.main([*same, "--suite", "classic", "--task", "Pendulum-v1"])
+
+
+def test_action_slope():
+    env = np.array([1.0, -2.0, 0.5])
+    assert control_failures._slope(0.5 * env, env) == pytest.approx(0.5)
+    assert control_failures._slope(np.zeros(3), env) == 0.0
+    assert math.isnan(control_failures._slope(env, np.zeros(3)))
+
+
+def test_action_response_of_a_perfect_model_is_one(pendulum_models, monkeypatch):
+    # a world model whose imagination is the real environment itself must respond with slope 1 everywhere
+    model = HIEROS.load(pendulum_models["one"], device="cpu")
+    episode = control_failures.play(model, make_env("classic", "Pendulum-v1", seed=5), 5, True)
+    replayed = {}
+
+    def fresh_env(suite, task, seed):
+        replayed["env"] = make_env(suite, task, seed=seed)
+        return replayed["env"]
+
+    class Imagined(NamedTuple):
+        env: Any
+        obs: th.Tensor
+        reward: float
+
+    def img_step(state, action, deterministic):
+        # the imagined state is a copy of the replayed environment, stepped as the branch is
+        env = state.env if isinstance(state, Imagined) else deepcopy(replayed["env"])
+        obs, reward, *_ = env.step(model.policy.env_actions(action)[0])
+        return Imagined(env, th.as_tensor(obs, dtype=th.float64)[None], float(reward)), None
+
+    wm = model.policy.hierarchy.levels[0].world_model
+    monkeypatch.setattr(control_failures, "make_env", fresh_env)
+    monkeypatch.setattr(wm, "img_step", img_step)
+    monkeypatch.setattr(wm, "reward", lambda state: th.tensor([state.reward]))
+    monkeypatch.setattr(wm, "decode", lambda state: state.obs)
+    figures = control_failures.action_response_figures(model, "classic", "Pendulum-v1", [5], [episode], 3, 40)
+    assert len(figures) == 5
+    for key, value in figures.items():
+        assert value == pytest.approx(1.0), key
