@@ -186,10 +186,11 @@ class ActorCriticConfig:
     :param eps: AdamW epsilon of actor and critics
     :param grad_clip: gradient norm clip of actor and critics
     :param slow_critic_fraction: EMA fraction of the slow critics, applied every update
-    :param return_normalization: ``"combined"``: the advantage is the weighted sum of the terms' advantages divided by
-        one return scale, that of the mixed return of eq. 4.3, so each term pulls on the actor in proportion to its
-        weight and its size in reward units; ``"per_term"``: each term's advantage is divided by its own return scale,
-        so each term's pull is set by its weight alone (:class:`~sb3_hieros.agent.actor_critic.ActorCritic`)
+    :param return_normalization: ``"combined"`` (default): the advantage is the weighted sum of the terms'
+        advantages divided by one return scale, that of the mixed return of eq. 4.3, so each term pulls on the actor
+        in proportion to its weight and its size in reward units; ``"per_term"`` (the public HIEROS code): each term's
+        advantage is divided by its own return scale, so each term's pull is set by its weight alone
+        (:class:`~sb3_hieros.agent.actor_critic.ActorCritic`)
     """
 
     units: int = 256
@@ -208,7 +209,7 @@ class ActorCriticConfig:
     eps: float = 1e-5
     grad_clip: float = 100.0
     slow_critic_fraction: float = 0.02
-    return_normalization: str = "per_term"
+    return_normalization: str = "combined"
 
     def __post_init__(self) -> None:
         _check_types(self)

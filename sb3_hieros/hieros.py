@@ -70,6 +70,9 @@ __all__ = ["HIEROS"]
 
 SelfHIEROS = TypeVar("SelfHIEROS", bound="HIEROS")
 
+#: the defaults that have changed since models are saved with their configuration: older saves were trained with these
+DEFAULTS_BEFORE_SAVED_CONFIG: dict[str, Any] = {"actor_critic": {"return_normalization": "per_term"}}
+
 
 class HIEROS(OffPolicyAlgorithm):
     """HIEROS: hierarchical imagination on S5 world models with efficient time-balanced replay (Mattes 2023).
@@ -542,7 +545,7 @@ class HIEROS(OffPolicyAlgorithm):
                 raise ValueError("HIEROS.load(..., safe=True) takes the spaces from the env: pass env=...")
             env = cls._wrap_env(env, verbose=0)
             env_spaces = (env.observation_space, env.action_space)
-        custom_objects = prepare_model_load(
+        custom_objects, data = prepare_model_load(
             path,
             custom_objects,
             safe,
@@ -551,6 +554,11 @@ class HIEROS(OffPolicyAlgorithm):
             {qualified_name(p): p for p in cls.policy_aliases.values()},  # type: ignore[misc]
             {qualified_name(b): b for b in (SequenceReplayBuffer, DictSequenceReplayBuffer, ETBSReplayBuffer)},  # type: ignore[misc]
         )
+        if "_config_fields" not in data and "_config_fields" not in kwargs:
+            # saved before the configuration was: rebuild it as it was then
+            preset = kwargs.get("preset", data.get("preset", "paper"))
+            legacy = get_preset(preset).replace(**DEFAULTS_BEFORE_SAVED_CONFIG)
+            kwargs["_config_fields"] = dataclasses.asdict(legacy)
         try:
             return super().load(  # type: ignore[return-value]
                 path,

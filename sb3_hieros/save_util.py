@@ -546,7 +546,7 @@ def prepare_model_load(
     policy_base: type,
     policies: Mapping[str, type],
     buffers: Mapping[str, type],
-) -> dict[str, Any]:
+) -> tuple[dict[str, Any], dict[str, Any]]:
     """Check a model zip before SB3 loads it and resolve the pickled entries of its ``data`` once (or never).
 
     The zip must be readable, hold ``data``, match its manifest's checksums and name a subclass of ``policy_base``;
@@ -559,7 +559,8 @@ def prepare_model_load(
     :param policy_base: the policy class every loadable file names (a subclass of it)
     :param policies: policy classes a safe load may name, by :func:`qualified_name`
     :param buffers: replay-buffer classes a safe load may name
-    :return: ``custom_objects`` for SB3's ``load`` (SB3 then unpickles nothing)
+    :return: ``custom_objects`` for SB3's ``load`` (SB3 then unpickles nothing), and the ``data`` member as plain JSON
+        (pickled entries left as they are in the file)
     """
     file, close = _open_zip(path, "zip")
     start = file.tell() if file.seekable() else None
@@ -596,7 +597,10 @@ def prepare_model_load(
 
     classes = {"policy_class": policies, "replay_buffer_class": buffers}
     if not safe:
-        return load_objects(data, custom_objects, check_policy, label, plain_builders(data, manifest, classes, label))
+        objects = load_objects(
+            data, custom_objects, check_policy, label, plain_builders(data, manifest, classes, label)
+        )
+        return objects, data
     saved_policy = data.get("policy_class")
     module = saved_policy.get("__module__") if isinstance(saved_policy, dict) else None
     if manifest is None and "policy_class" not in (custom_objects or {}):
@@ -614,4 +618,4 @@ def prepare_model_load(
     objects = safe_load_objects(data, manifest, *env_spaces, classes, label, provided=set(custom_objects or {}))
     objects.update(custom_objects or {})
     check_policy(objects.get("policy_class"))
-    return objects
+    return objects, data

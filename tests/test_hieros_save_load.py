@@ -76,6 +76,21 @@ def test_load_keeps_the_saved_configuration(trained, monkeypatch, safe):
     assert HIEROS.load(path / "model.zip", learning_starts=3).config.learning_starts == 3
 
 
+def test_load_of_a_save_without_its_configuration(tmp_path, monkeypatch):
+    # saves made before the configuration was saved with the model were trained with per-term return scales
+    small = config.PRESETS["small"]
+    old_small = lambda: small().replace(actor_critic={"return_normalization": "per_term"})  # noqa: E731
+    monkeypatch.setitem(config.PRESETS, "small", old_small)
+    model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs())
+    model.learn(30)
+    model.save(tmp_path / "old.zip", exclude=["_config_fields"])
+    monkeypatch.setitem(config.PRESETS, "small", small)
+    assert HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs()).config.actor_critic.return_normalization == "combined"
+    loaded = HIEROS.load(tmp_path / "old.zip")
+    assert loaded.config == model.config
+    _assert_same_params(loaded.get_parameters(), model.get_parameters())
+
+
 def test_torch_save_params_layout(trained):
     model, _ = trained
     names, variables = model._get_torch_save_params()
