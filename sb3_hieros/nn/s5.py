@@ -213,6 +213,8 @@ class S5Layer(nn.Module):
         self._compiled_core: Callable[..., tuple[torch.Tensor, torch.Tensor]] | None = None
         # Step weights held by ``reuse_step_weights`` (not part of the state_dict).
         self._held_step_weights: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+        # Step weights of the last gradient-free step and what they were computed from (see ``_step_weights``).
+        self._no_grad_step_weights: tuple[tuple[tuple[torch.Tensor, int], ...], tuple[torch.Tensor, ...]] | None = None
 
     def extra_repr(self) -> str:
         return f"d_model={self.d_model}, d_state={self.d_state}, n_blocks={self.n_blocks}"
@@ -262,11 +264,26 @@ class S5Layer(nn.Module):
     def _step_weights(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """:meth:`_real_weights`, or the ones held by :meth:`reuse_step_weights` inside its block.
 
+        Without autograd (acting) the weights of the last call are reused while the parameters they came from are
+        unchanged: the same tensors (held, so their memory cannot be reused by others) at the same version counter,
+        which every in-place write (optimiser steps, ``load_state_dict``) advances.
+
         :return: ``Lambda_bar`` ``(P,)`` complex, input weight ``(2P, H)``, output weight ``(H, 2P)``
         """
         if self._held_step_weights is not None:
             return self._held_step_weights
-        return self._real_weights()
+        if torch.is_grad_enabled():
+            return self._real_weights()
+        cached = self._no_grad_step_weights
+        params = (self.log_neg_lambda_real, self.lambda_imag, self.B, self.C, self.log_step)
+        if cached is not None and all(
+            p.data_ptr() == held.data_ptr() and p._version == version
+            for p, (held, version) in zip(params, cached[0], strict=True)
+        ):
+            return cached[1]  # type: ignore[return-value]
+        weights = self._real_weights()
+        self._no_grad_step_weights = (tuple((p.detach(), p._version) for p in params), weights)
+        return weights
 
     @contextlib.contextmanager
     def reuse_step_weights(self) -> Iterator[None]:
