@@ -140,6 +140,14 @@ def _check_state(state: object, expected_shape: tuple[int, ...], layout: str) ->
     return state
 
 
+def _without_autocast(device_type: str) -> contextlib.AbstractContextManager:
+    """A block that runs outside any autocast: ``torch.autocast(enabled=False)`` where one is active, else nothing
+    (entering the autocast context costs more than the single-step maths it would guard)."""
+    if torch.is_autocast_enabled(device_type):
+        return torch.autocast(device_type=device_type, enabled=False)
+    return contextlib.nullcontext()
+
+
 class S5Layer(nn.Module):
     """One resettable S5 layer: diagonal complex SSM with ZOH discretisation (thesis 2.4.3, eq. 2.4-2.5).
 
@@ -352,11 +360,11 @@ class S5Layer(nn.Module):
         self, x: torch.Tensor, state: torch.Tensor | None, reset: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """``step`` without input checks."""
-        with torch.autocast(device_type=x.device.type, enabled=False):
+        with _without_autocast(x.device.type):
             u = x.to(self.B.dtype)
             lambda_bar, w_in, w_out = self._step_weights()
         bu = F.linear(u, w_in).to(u.dtype)  # (B, 2P), in an enclosing autocast's dtype, then back
-        with torch.autocast(device_type=x.device.type, enabled=False):
+        with _without_autocast(x.device.type):
             new_state = torch.view_as_complex(bu.view(x.shape[0], self.d_state, 2))  # (B, P)
             if state is not None:
                 carried = lambda_bar * state
@@ -440,7 +448,10 @@ class S5Block(nn.Module):
         self, x: torch.Tensor, state: torch.Tensor | None, reset: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         y, new_state = self.s5._step(self.norm(x), state, reset)
-        return x + self.dropout(F.silu(y)), new_state
+        y = F.silu(y)
+        if self.training and self.dropout.p > 0.0:  # otherwise dropout returns its input
+            y = self.dropout(y)
+        return x + y, new_state
 
     def step(
         self, x: torch.Tensor, state: torch.Tensor | None, reset: torch.Tensor | None = None
