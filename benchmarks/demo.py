@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import pathlib
 import sys
 import time
@@ -45,6 +47,40 @@ def extra_callbacks(out: pathlib.Path, subgoal_every: int = 2_000) -> list[BaseC
     :return: callbacks to add to training
     """
     return [SubgoalDecodeCallback(every=subgoal_every, save_dir=out / "subgoals", tensorboard=False)]
+
+
+def auto_threads(cpus: int, load: float, most: int = 2) -> tuple[int, str]:
+    """Torch threads for a run, from the CPUs this process may use and the load on them.
+
+    A core counts as free when the load leaves at least half of it; more threads than free cores wait on busy ones
+    (intra-op threads synchronise at every operator), which slows the small preset's many small operators many-fold.
+    At most ``most`` threads: the small preset's operators are too small for more to pay.
+
+    :param cpus: CPUs this process may run on
+    :param load: runnable processes on the machine (load average), this one not yet among them
+    :param most: upper bound
+    :return: the thread count and a sentence saying why
+    """
+    if isinstance(cpus, bool) or not isinstance(cpus, int) or cpus < 1:
+        raise ValueError(f"cpus must be a positive int, got {cpus!r}")
+    if not math.isfinite(load) or load < 0:
+        raise ValueError(f"load must be a finite number >= 0, got {load!r}")
+    if isinstance(most, bool) or not isinstance(most, int) or most < 1:
+        raise ValueError(f"most must be a positive int, got {most!r}")
+    free = max(0.0, cpus - load)
+    threads = max(1, min(most, math.floor(free + 0.5)))
+    why = f"{cpus} CPUs available, load {load:.1f}, so {free:.1f} free; at most {most}"
+    return threads, why
+
+
+def free_cpus() -> tuple[int, float]:
+    """The CPUs this process may run on (its affinity) and the machine's load average over the last minute.
+
+    :return: (cpus, load); load 0.0 where the system does not report one
+    """
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+    return cpus, load
 
 
 def plot_learning_curve(evaluations: pathlib.Path, path: pathlib.Path, title: str) -> None:
@@ -105,7 +141,10 @@ def main(argv: list[str] | None = None) -> dict:
         "--subgoal-every", type=int, default=2_000, help="decoded-subgoal PNG every N environment steps"
     )
     parser.add_argument(
-        "--threads", type=int, default=None, help="torch CPU threads (default: torch's, i.e. OMP_NUM_THREADS)"
+        "--threads",
+        type=int,
+        default=None,
+        help="torch CPU threads (default: OMP_NUM_THREADS if set, else chosen from the free CPUs, at most 2)",
     )
     parser.add_argument(
         "--progress-bar", action=argparse.BooleanOptionalAction, default=True, help="show SB3's progress bar"
@@ -119,11 +158,21 @@ def main(argv: list[str] | None = None) -> dict:
     if hasattr(sys.stdout, "reconfigure"):
         sys.stdout.reconfigure(line_buffering=True)  # every log line reaches a redirected file at once
     if args.threads is not None:
+        if args.threads < 1:
+            raise ValueError(f"--threads must be >= 1, got {args.threads}")
         th.set_num_threads(args.threads)
+        threads_line = f"torch threads: {args.threads} (--threads)"
+    elif os.environ.get("OMP_NUM_THREADS"):
+        threads_line = f"torch threads: {th.get_num_threads()} (OMP_NUM_THREADS={os.environ['OMP_NUM_THREADS']})"
+    else:
+        threads, why = auto_threads(*free_cpus())
+        th.set_num_threads(threads)
+        threads_line = f"torch threads: {threads} (chosen: {why}; --threads N to set)"
 
     out: pathlib.Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     print(environment_header())
+    print(threads_line)
     print(f"demo: {args.preset} preset on {args.env}, {args.steps} steps, seed {args.seed}, output {out}")
 
     env = make_vec_env(args.env, n_envs=1, seed=args.seed)

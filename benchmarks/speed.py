@@ -16,13 +16,25 @@ warm-up segment each first. The thesis reports S5WM 1.59x as fast as RSSM on a G
 During the timed segments a :class:`PhaseClock` splits each build's wall time into acting, world-model updates,
 imagination, actor-critic + autoencoder updates, replay sampling and the rest (environment, buffer writes), so the
 table shows which parts the sequence model can speed up at all.
+
+``python -m benchmarks.speed compare --ref <git ref>`` times the same public-API parts for the working tree and for the
+ref (checked out into a temporary git worktree, removed afterwards), each part in a fresh interpreter per repetition
+(``benchmarks/_speed_cases.py``), the two sides alternated in the order A B B A ... so that a drift of the machine's
+load falls on both: ``learn`` (seconds of ``model.learn(3000)`` on CartPole-v1, small preset, learning_starts 500),
+``predict`` (latency of deterministic ``predict`` on one env with the recurrent state threaded) and ``pong`` (env steps
+per second of ``learn`` on ALE Pong 64x64, small preset, every level training). It prints each side's median and range
+over the repetitions and the speed-ups (ref time / our time, our steps/s / ref steps/s) as ``name: value`` last.
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
+import json
 import os
+import pathlib
+import statistics
+import tempfile
 import time
 from collections import defaultdict
 from collections.abc import Callable, Sequence
@@ -31,6 +43,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from benchmarks import _gitref
 from benchmarks._timing import Timing, environment_header, format_ms, time_interleaved
 from sb3_hieros.nn.s5 import S5Layer, S5Stack, associative_scan_resettable, compile_s5, resettable_scan
 from sb3_hieros.nn.scan import _interleave
@@ -426,6 +439,106 @@ def world_model_speedup_needed(
     return rssm_world_model / allowed if allowed > 0 else float("inf")
 
 
+CASES_SCRIPT = pathlib.Path(__file__).resolve().parent / "_speed_cases.py"
+#: part -> (figure in its result, unit, True when larger is faster)
+COMPARED = {
+    "learn": ("seconds", "s", False),
+    "predict": ("median_ms", "ms per call", False),
+    "pong": ("steps_per_s", "env steps/s", True),
+}
+
+
+def time_part(root: pathlib.Path, part: str, options: Sequence[str], timeout: float | None = None) -> dict[str, Any]:
+    """One timing of ``part`` with the ``sb3_hieros`` of the tree at ``root``, in a fresh interpreter.
+
+    :param root: the working tree or a temporary checkout of a ref
+    :param part: one of :data:`COMPARED`
+    :param options: further arguments of ``benchmarks/_speed_cases.py`` (sizes, threads, seed)
+    :param timeout: seconds before the run is killed, or None
+    :return: the part's result (``benchmarks/_speed_cases.py``)
+    """
+    with tempfile.TemporaryDirectory(prefix="sb3-hieros-speed-") as tmp:
+        out = pathlib.Path(tmp) / "result.json"
+        result = _gitref.run_script(root, CASES_SCRIPT, ["--part", part, "--out", str(out), *options], timeout)
+        if result.returncode != 0 or not out.exists():
+            raise RuntimeError(f"the {part} timing failed with {root}/sb3_hieros:\n{result.stderr[-4000:]}")
+        found = json.loads(out.read_text())
+    if not pathlib.Path(found["sb3_hieros"]).is_relative_to(root.resolve()):
+        raise RuntimeError(f"the {part} timing imported sb3_hieros from {found['sb3_hieros']}, not from {root}")
+    return found
+
+
+def compare_table(samples: dict[str, dict[str, list[float]]]) -> str:
+    """Medians and ranges of both sides and the speed-ups, from paired repetitions.
+
+    :param samples: part -> {"here": figures, "ref": figures}, one figure per repetition in the same order
+        (:data:`COMPARED` says which figure and whether larger is faster)
+    :return: a table, then ``<part>_speedup: value`` lines (median of the paired per-repetition speed-ups; > 1: the
+        working tree is faster) and ``<part>_speedup_of_medians: value``
+    """
+
+    def spread(values: Sequence[float]) -> str:
+        return f"{statistics.median(values):10.3f} [{min(values):.3f}, {max(values):.3f}]"
+
+    lines = [f"{'part':<8}{'unit':<14}{'here median [min, max]':>32}{'ref median [min, max]':>32}{'speed-up':>30}"]
+    summary = []
+    for part, sides in samples.items():
+        _, unit, larger_is_faster = COMPARED[part]
+        here, ref = sides["here"], sides["ref"]
+        paired = [(h / r if larger_is_faster else r / h) for h, r in zip(here, ref, strict=True)]
+        medians = statistics.median(here), statistics.median(ref)
+        of_medians = medians[0] / medians[1] if larger_is_faster else medians[1] / medians[0]
+        lines.append(f"{part:<8}{unit:<14}{spread(here):>32}{spread(ref):>32}{spread(paired):>30}")
+        summary.append(f"{part}_speedup: {statistics.median(paired):.2f}")
+        summary.append(f"{part}_speedup_of_medians: {of_medians:.2f}")
+        if part == "pong":
+            summary.append(f"pong_env_steps_per_s: {medians[0]:.2f}")
+            summary.append(f"pong_env_steps_per_s_ref: {medians[1]:.2f}")
+    return "\n".join([*lines, "", *summary])
+
+
+def run_compare(args: argparse.Namespace) -> None:
+    """``compare`` subcommand: the working tree against ``--ref``, parts alternated; prints the speed-ups last."""
+    if args.reps < 1:
+        raise ValueError(f"--reps must be >= 1, got {args.reps}")
+    root = _gitref.repo_root()
+    commit = _gitref.resolve(args.ref, root)
+    options = [
+        f"--threads={args.threads}",
+        f"--seed={args.seed}",
+        f"--learn-steps={args.learn_steps}",
+        f"--learning-starts={args.learning_starts}",
+        f"--predict-calls={args.predict_calls}",
+        f"--pong-steps={args.pong_steps}",
+        f"--pong-warmup={args.pong_warmup}",
+        f"--pong-learning-starts={args.pong_learning_starts}",
+    ]
+    print(environment_header())
+    print(
+        f"working tree {root} against {args.ref} ({commit[:12]}): parts {' '.join(args.parts)}, {args.reps} "
+        f"repetitions, sides alternated A B B A, {args.threads} torch thread(s), fresh interpreter per timing"
+    )
+    print(
+        f"learn: CartPole-v1 learn({args.learn_steps}), learning_starts {args.learning_starts}; predict: "
+        f"{args.predict_calls} calls; pong: {args.pong_steps} timed env steps after {args.pong_learning_starts} "
+        f"random + {args.pong_warmup} warm-up steps"
+    )
+    samples: dict[str, dict[str, list[float]]] = {part: {"here": [], "ref": []} for part in args.parts}
+    with _gitref.checkout(commit, root) as tree:
+        trees = {"here": root, "ref": tree}
+        for rep in range(args.reps):
+            order = ("here", "ref") if rep % 2 == 0 else ("ref", "here")
+            for part in args.parts:
+                figure, unit, _ = COMPARED[part]
+                for side in order:
+                    result = time_part(trees[side], part, options, args.timeout)
+                    samples[part][side].append(result[figure])
+                    extra = f", level updates {result['level_updates']}" if "level_updates" in result else ""
+                    print(f"  rep {rep + 1} {part:<8} {side:<4} {result[figure]:10.3f} {unit}{extra}", flush=True)
+    print()
+    print(compare_table(samples))
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Argument parser with one subcommand per benchmark table."""
     parser = argparse.ArgumentParser(prog="python -m benchmarks.speed", description=__doc__.split("\n")[0])
@@ -464,6 +577,27 @@ def build_parser() -> argparse.ArgumentParser:
     agent.add_argument("--game", default="Pong", help="Atari game (default Pong)")
     agent.add_argument("--seed", type=int, default=0)
     agent.set_defaults(func=run_agent)
+
+    compare = sub.add_parser(
+        "compare", help="learn / predict / Pong timings of the working tree against a git ref, alternated; ratios"
+    )
+    compare.add_argument("--ref", required=True, help="git revision to compare with (branch, tag or commit)")
+    compare.add_argument(
+        "--parts", nargs="+", choices=tuple(COMPARED), default=list(COMPARED), help="parts to time (default: all)"
+    )
+    compare.add_argument("--reps", type=int, default=3, help="repetitions of every part and side (default 3)")
+    compare.add_argument("--threads", type=int, default=1, help="torch threads of the timed runs (default 1)")
+    compare.add_argument("--learn-steps", type=int, default=3000, help="env steps of the learn part (default 3000)")
+    compare.add_argument("--learning-starts", type=int, default=500, help="of the learn part (default 500)")
+    compare.add_argument("--predict-calls", type=int, default=500, help="timed predict calls (default 500)")
+    compare.add_argument("--pong-steps", type=int, default=128, help="timed Pong env steps (default 128)")
+    compare.add_argument("--pong-warmup", type=int, default=32, help="untimed Pong training steps first (default 32)")
+    compare.add_argument(
+        "--pong-learning-starts", type=int, default=256, help="random Pong steps before those (default 256)"
+    )
+    compare.add_argument("--seed", type=int, default=0)
+    compare.add_argument("--timeout", type=float, default=3600.0, help="seconds per timing (default 3600)")
+    compare.set_defaults(func=run_compare)
     return parser
 
 
@@ -472,7 +606,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     if getattr(args, "threads", None) is not None:
         if args.threads < 1:
             raise ValueError(f"--threads must be >= 1, got {args.threads}")
-        torch.set_num_threads(args.threads)
+        if args.command != "compare":  # compare sets them in the interpreters it starts
+            torch.set_num_threads(args.threads)
     args.func(args)
 
 

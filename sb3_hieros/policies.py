@@ -38,6 +38,7 @@ from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, FlattenExtractor, NatureCNN
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from torch import nn
 
 from sb3_hieros.agent.hierarchy import Hierarchy, HierarchyState, make_hierarchy
 from sb3_hieros.agent.world_model import LatentState, ObservationOptions
@@ -217,7 +218,17 @@ class HierosPolicy(BasePolicy):
 
     def _apply(self, fn: Any, recurse: bool = True) -> HierosPolicy:
         self.__dict__.pop("_cached_device", None)
+        self.__dict__.pop("_state_template", None)
         return super()._apply(fn, recurse)
+
+    def _all_modules(self) -> tuple[nn.Module, ...]:
+        """Every module of the policy, listed once (the tree is fixed after construction; walking it costs more
+        than a whole acting step of the small preset)."""
+        cached = self.__dict__.get("_module_list")
+        if cached is None:
+            cached = tuple(self.modules())
+            self.__dict__["_module_list"] = cached
+        return cached
 
     def set_training_mode(self, mode: bool) -> None:
         """SB3's train/eval switch, skipped when every module is already in ``mode``.
@@ -227,8 +238,11 @@ class HierosPolicy(BasePolicy):
 
         :param mode: True for training mode, False for evaluation mode
         """
-        if any(module.training != bool(mode) for module in self.modules()):
-            self.train(mode)
+        mode = bool(mode)
+        for module in self._all_modules():
+            if module.training != mode:
+                self.train(mode)
+                return
 
     # ------------------------------------------------------------------------------------------------ actions
 
@@ -333,7 +347,10 @@ class HierosPolicy(BasePolicy):
                 f"state must be the tuple of {len(names)} arrays that predict() returned ({', '.join(names)}), "
                 f"got {got}"
             )
-        template = self._flatten(self.hierarchy.initial_state(1))
+        template = self.__dict__.get("_state_template")
+        if template is None:  # cleared by _apply with the device
+            template = self._flatten(self.hierarchy.initial_state(1))
+            self.__dict__["_state_template"] = template
         tensors = []
         for name, value, ref in zip(names, state, template, strict=True):
             array = np.asarray(value)

@@ -10,6 +10,7 @@ import sys
 import time
 
 import numpy as np
+import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -56,3 +57,31 @@ def _paused_read(process: subprocess.Popen, path: pathlib.Path) -> np.ndarray:
             process.send_signal(signal.SIGCONT)  # caught in the middle of a write
             time.sleep(0.05)
     raise AssertionError(f"{path} could not be read")
+
+
+def test_threads_follow_the_free_cpus():
+    from benchmarks.demo import auto_threads
+
+    assert auto_threads(2, 0.1)[0] == 2  # a quiet 2-core machine
+    assert auto_threads(2, 0.4)[0] == 2
+    assert auto_threads(2, 1.0)[0] == 1  # one core busy: a second thread would wait on it
+    assert auto_threads(2, 5.0)[0] == 1  # busier than the machine: still one thread
+    assert auto_threads(16, 0.0)[0] == 2  # never more than ``most``
+    assert auto_threads(16, 0.0, most=4)[0] == 4
+    assert auto_threads(16, 13.2, most=4)[0] == 3
+    assert auto_threads(1, 0.0)[0] == 1
+    threads, why = auto_threads(2, 1.2)
+    assert threads == 1 and "2 CPUs available, load 1.2, so 0.8 free" in why
+
+
+def test_thread_choice_checks_its_inputs():
+    from benchmarks.demo import auto_threads, free_cpus
+
+    with pytest.raises(ValueError, match="cpus must be a positive int, got 0"):
+        auto_threads(0, 0.0)
+    with pytest.raises(ValueError, match=r"load must be a finite number >= 0, got -1\.0"):
+        auto_threads(2, -1.0)
+    with pytest.raises(ValueError, match="load must be a finite number >= 0, got nan"):
+        auto_threads(2, float("nan"))
+    cpus, load = free_cpus()
+    assert cpus >= 1 and load >= 0.0

@@ -485,3 +485,31 @@ def test_nonfinite_inputs_propagate_without_raising():
     assert torch.isnan(y[0, 1:]).any() and torch.isfinite(y[1:]).all()
     y_step, _ = stack.step(x[:, 1], None)
     assert torch.isnan(y_step[0]).any() and torch.isfinite(y_step[1:]).all()
+
+
+def test_gradient_free_steps_reuse_weights_only_while_the_parameters_are_unchanged():
+    torch.manual_seed(0)
+    layer = S5Layer(H, P, J)
+    x = torch.randn(3, H)
+    state = torch.randn(3, P, dtype=torch.complex64)
+
+    def gradient_free() -> torch.Tensor:
+        with torch.no_grad():
+            return layer.step(x, state)[0]
+
+    def with_autograd() -> torch.Tensor:  # discretises afresh at every call
+        return layer.step(x, state)[0].detach()
+
+    first = gradient_free()
+    assert torch.equal(first, with_autograd()) and torch.equal(gradient_free(), first)
+    optimizer = torch.optim.SGD(layer.parameters(), lr=0.1)
+    layer.step(x, state)[0].square().sum().backward()
+    optimizer.step()  # in place, as in training
+    stepped = gradient_free()
+    assert not torch.equal(stepped, first) and torch.equal(stepped, with_autograd())
+    layer.load_state_dict({k: v * 1.5 for k, v in layer.state_dict().items()})
+    loaded = gradient_free()
+    assert not torch.equal(loaded, stepped) and torch.equal(loaded, with_autograd())
+    layer.log_step.data = layer.log_step.data + 0.25  # new storage, version counter of its own
+    replaced = gradient_free()
+    assert not torch.equal(replaced, loaded) and torch.equal(replaced, with_autograd())

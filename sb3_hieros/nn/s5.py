@@ -140,6 +140,14 @@ def _check_state(state: object, expected_shape: tuple[int, ...], layout: str) ->
     return state
 
 
+def _without_autocast(device_type: str) -> contextlib.AbstractContextManager:
+    """A block that runs outside any autocast: ``torch.autocast(enabled=False)`` where one is active, else nothing
+    (entering the autocast context costs more than the single-step maths it would guard)."""
+    if torch.is_autocast_enabled(device_type):
+        return torch.autocast(device_type=device_type, enabled=False)
+    return contextlib.nullcontext()
+
+
 class S5Layer(nn.Module):
     """One resettable S5 layer: diagonal complex SSM with ZOH discretisation (thesis 2.4.3, eq. 2.4-2.5).
 
@@ -213,6 +221,8 @@ class S5Layer(nn.Module):
         self._compiled_core: Callable[..., tuple[torch.Tensor, torch.Tensor]] | None = None
         # Step weights held by ``reuse_step_weights`` (not part of the state_dict).
         self._held_step_weights: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+        # Step weights of the last gradient-free step and what they were computed from (see ``_step_weights``).
+        self._no_grad_step_weights: tuple[tuple[tuple[torch.Tensor, int], ...], tuple[torch.Tensor, ...]] | None = None
 
     def extra_repr(self) -> str:
         return f"d_model={self.d_model}, d_state={self.d_state}, n_blocks={self.n_blocks}"
@@ -262,11 +272,26 @@ class S5Layer(nn.Module):
     def _step_weights(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """:meth:`_real_weights`, or the ones held by :meth:`reuse_step_weights` inside its block.
 
+        Without autograd (acting) the weights of the last call are reused while the parameters they came from are
+        unchanged: the same tensors (held, so their memory cannot be reused by others) at the same version counter,
+        which every in-place write (optimiser steps, ``load_state_dict``) advances.
+
         :return: ``Lambda_bar`` ``(P,)`` complex, input weight ``(2P, H)``, output weight ``(H, 2P)``
         """
         if self._held_step_weights is not None:
             return self._held_step_weights
-        return self._real_weights()
+        if torch.is_grad_enabled():
+            return self._real_weights()
+        cached = self._no_grad_step_weights
+        params = (self.log_neg_lambda_real, self.lambda_imag, self.B, self.C, self.log_step)
+        if cached is not None and all(
+            p.data_ptr() == held.data_ptr() and p._version == version
+            for p, (held, version) in zip(params, cached[0], strict=True)
+        ):
+            return cached[1]  # type: ignore[return-value]
+        weights = self._real_weights()
+        self._no_grad_step_weights = (tuple((p.detach(), p._version) for p in params), weights)
+        return weights
 
     @contextlib.contextmanager
     def reuse_step_weights(self) -> Iterator[None]:
@@ -335,11 +360,11 @@ class S5Layer(nn.Module):
         self, x: torch.Tensor, state: torch.Tensor | None, reset: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """``step`` without input checks."""
-        with torch.autocast(device_type=x.device.type, enabled=False):
+        with _without_autocast(x.device.type):
             u = x.to(self.B.dtype)
             lambda_bar, w_in, w_out = self._step_weights()
         bu = F.linear(u, w_in).to(u.dtype)  # (B, 2P), in an enclosing autocast's dtype, then back
-        with torch.autocast(device_type=x.device.type, enabled=False):
+        with _without_autocast(x.device.type):
             new_state = torch.view_as_complex(bu.view(x.shape[0], self.d_state, 2))  # (B, P)
             if state is not None:
                 carried = lambda_bar * state
@@ -423,7 +448,10 @@ class S5Block(nn.Module):
         self, x: torch.Tensor, state: torch.Tensor | None, reset: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         y, new_state = self.s5._step(self.norm(x), state, reset)
-        return x + self.dropout(F.silu(y)), new_state
+        y = F.silu(y)
+        if self.training and self.dropout.p > 0.0:  # otherwise dropout returns its input
+            y = self.dropout(y)
+        return x + y, new_state
 
     def step(
         self, x: torch.Tensor, state: torch.Tensor | None, reset: torch.Tensor | None = None

@@ -1,0 +1,156 @@
+"""The timed parts of ``python -m benchmarks.speed compare``, run once per call in a fresh interpreter.
+
+``benchmarks/speed.py`` runs this file with :func:`benchmarks._gitref.run_script` for the working tree and for a git
+ref, so ``import sb3_hieros`` here loads the package of the tree it is run for. Only the public API is used
+(``HIEROS(..., preset=, seed=, learning_starts=)``, ``learn``, ``predict``), so any revision with that API can be
+timed. The Atari environment comes from this file's own ``suites.py`` (loaded by path), the same on both sides.
+
+Parts (``--part``), each on ``--threads`` torch threads:
+
+* ``learn``: wall time of ``model.learn(steps)`` of a new small-preset ``MlpPolicy`` model on CartPole-v1;
+* ``predict``: latency of ``model.predict(obs, state, episode_start, deterministic=True)`` on one CartPole env, the
+  recurrent state threaded from call to call (an untrained small-preset model; the env is stepped with the actions);
+* ``pong``: env steps per second of ``learn`` on ALE Pong 64x64 with the small preset, after ``learning_starts``
+  random steps and one untimed warm-up segment, over one timed segment in which every level trains.
+
+The result is written as JSON to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import pathlib
+import statistics
+import sys
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+PARTS = ("learn", "predict", "pong")
+
+
+def _level_updates(model: Any) -> list[int]:
+    """Updates per level so far (revisions without ``level_updates()`` keep the counts in ``_level_updates``)."""
+    counts = model.level_updates() if hasattr(model, "level_updates") else model._level_updates
+    return list(counts or [])
+
+
+def time_learn(steps: int, learning_starts: int, seed: int) -> dict[str, Any]:
+    """Seconds of ``learn(steps)`` on CartPole-v1, small preset (construction not timed).
+
+    :param steps: environment steps
+    :param learning_starts: random steps before training
+    :param seed: seed of the model and its env
+    :return: ``seconds`` and ``level_updates``
+    """
+    from sb3_hieros import HIEROS
+
+    model = HIEROS("MlpPolicy", "CartPole-v1", preset="small", seed=seed, learning_starts=learning_starts)
+    start = time.perf_counter()
+    model.learn(steps)
+    seconds = time.perf_counter() - start
+    return {"seconds": seconds, "level_updates": _level_updates(model)}
+
+
+def time_predict(calls: int, warmup: int, seed: int) -> dict[str, Any]:
+    """Per-call latency of deterministic ``predict`` on one CartPole env with the state threaded.
+
+    :param calls: timed calls
+    :param warmup: untimed calls first
+    :param seed: seed of the model and of the env
+    :return: ``median_ms``, ``mean_ms`` and ``calls``
+    """
+    import gymnasium as gym
+
+    from sb3_hieros import HIEROS
+
+    model = HIEROS("MlpPolicy", "CartPole-v1", preset="small", seed=seed)
+    env = gym.make("CartPole-v1")
+    obs, _ = env.reset(seed=seed)
+    state, start = None, True
+    samples = []
+    for call in range(warmup + calls):
+        begin = time.perf_counter()
+        action, state = model.predict(obs, state=state, episode_start=np.array([start]), deterministic=True)
+        elapsed = time.perf_counter() - begin
+        if call >= warmup:
+            samples.append(elapsed)
+        obs, _, terminated, truncated, _ = env.step(int(action))
+        start = terminated or truncated
+        if start:
+            obs, _ = env.reset()
+    return {
+        "median_ms": statistics.median(samples) * 1e3,
+        "mean_ms": statistics.fmean(samples) * 1e3,
+        "calls": calls,
+    }
+
+
+def _suites() -> Any:
+    """This file's ``benchmarks/suites.py``, loaded by path (``benchmarks`` on sys.path may be another tree's)."""
+    path = pathlib.Path(__file__).resolve().parent / "suites.py"
+    spec = importlib.util.spec_from_file_location("_speed_suites", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def time_pong(steps: int, warmup: int, learning_starts: int, seed: int) -> dict[str, Any]:
+    """Env steps per second of ``learn`` on ALE Pong 64x64, small preset, over one timed segment.
+
+    :param steps: env steps of the timed segment
+    :param warmup: env steps of the untimed segment before it (after the random ``learning_starts`` steps)
+    :param learning_starts: untimed random steps first
+    :param seed: seed of the model and of the env
+    :return: ``steps_per_s`` and ``level_updates`` (updates per level in the timed segment)
+    """
+    from sb3_hieros import HIEROS
+
+    env = _suites().make_atari_env("Pong", seed=seed)
+    model = HIEROS("CnnPolicy", env, preset="small", seed=seed, learning_starts=learning_starts)
+    model.learn(learning_starts + warmup)
+    before = _level_updates(model)
+    start = time.perf_counter()
+    model.learn(steps, reset_num_timesteps=False)
+    seconds = time.perf_counter() - start
+    updates = [now - then for now, then in zip(_level_updates(model), before, strict=True)]
+    return {"steps_per_s": steps / seconds, "seconds": seconds, "level_updates": updates}
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--part", choices=PARTS, required=True)
+    parser.add_argument("--out", type=pathlib.Path, required=True)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--learn-steps", type=int, default=3000)
+    parser.add_argument("--learning-starts", type=int, default=500)
+    parser.add_argument("--predict-calls", type=int, default=500)
+    parser.add_argument("--predict-warmup", type=int, default=20)
+    parser.add_argument("--pong-steps", type=int, default=128)
+    parser.add_argument("--pong-warmup", type=int, default=32)
+    parser.add_argument("--pong-learning-starts", type=int, default=256)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    if args.part == "learn":
+        result = time_learn(args.learn_steps, args.learning_starts, args.seed)
+    elif args.part == "predict":
+        result = time_predict(args.predict_calls, args.predict_warmup, args.seed)
+    else:
+        result = time_pong(args.pong_steps, args.pong_warmup, args.pong_learning_starts, args.seed)
+    import sb3_hieros
+
+    result["sb3_hieros"] = str(pathlib.Path(sb3_hieros.__file__).resolve().parent)
+    result["threads"] = torch.get_num_threads()
+    args.out.write_text(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,68 @@
+"""benchmarks/speed.py compare: the speed-up table and a run against HEAD on tiny settings (nothing is timed here)."""
+
+from __future__ import annotations
+
+import pytest
+
+from benchmarks import _speed_cases
+from benchmarks.speed import compare_table, main
+
+
+def test_speedups_are_ref_over_here_for_times_and_here_over_ref_for_rates():
+    samples = {
+        "learn": {"here": [10.0, 20.0, 12.0], "ref": [30.0, 30.0, 48.0]},  # paired speed-ups 3.0, 1.5, 4.0
+        "pong": {"here": [21.0, 22.0, 20.0], "ref": [7.0, 11.0, 5.0]},  # 3.0, 2.0, 4.0
+    }
+    figures = dict(line.split(": ") for line in compare_table(samples).splitlines() if ": " in line)
+    assert float(figures["learn_speedup"]) == pytest.approx(3.0)
+    assert float(figures["learn_speedup_of_medians"]) == pytest.approx(30.0 / 12.0, abs=0.005)
+    assert float(figures["pong_speedup"]) == pytest.approx(3.0)
+    assert float(figures["pong_speedup_of_medians"]) == pytest.approx(3.0)
+    assert float(figures["pong_env_steps_per_s"]) == pytest.approx(21.0)
+    assert float(figures["pong_env_steps_per_s_ref"]) == pytest.approx(7.0)
+    learn_row = next(line for line in compare_table(samples).splitlines() if line.startswith("learn"))
+    assert "[1.500, 4.000]" in learn_row  # range of the paired speed-ups
+
+
+def test_compare_against_head_on_tiny_settings(capsys):
+    main(
+        [
+            "compare",
+            "--ref",
+            "HEAD",
+            "--parts",
+            "learn",
+            "predict",
+            "--reps",
+            "1",
+            "--learn-steps",
+            "24",
+            "--learning-starts",
+            "16",
+            "--predict-calls",
+            "3",
+        ]
+    )
+    out = capsys.readouterr().out
+    for name in ("learn_speedup", "predict_speedup", "learn_speedup_of_medians"):
+        assert f"\n{name}: " in out
+    assert "rep 1 learn    here" in out and "rep 1 learn    ref " in out
+    assert "pong" not in out.split("\n\n")[-1]  # a part not asked for is not timed
+
+
+def test_compare_checks_its_arguments():
+    with pytest.raises(SystemExit):
+        main(["compare"])  # --ref is required
+    with pytest.raises(SystemExit):
+        main(["compare", "--ref", "HEAD", "--parts", "walk"])
+    with pytest.raises(ValueError, match="--reps must be >= 1, got 0"):
+        main(["compare", "--ref", "HEAD", "--reps", "0"])
+    with pytest.raises(ValueError, match="names no commit"):
+        main(["compare", "--ref", "no-such-branch-anywhere"])
+
+
+def test_pong_part_trains_on_tiny_settings():
+    pytest.importorskip("ale_py", reason="the 'atari' extra is not installed")
+    result = _speed_cases.time_pong(steps=4, warmup=2, learning_starts=24, seed=0)
+    assert result["steps_per_s"] > 0 and len(result["level_updates"]) == 2
+    assert result["level_updates"][0] > 0  # level 0 trained in the timed segment
