@@ -63,9 +63,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 __all__ = [
     "ALGOS",
+    "LABELS",
     "TASKS",
     "SuiteRun",
     "TaskSpec",
+    "append_record",
     "finished_runs",
     "recorded_runs",
     "run_key",
@@ -93,12 +95,18 @@ class TaskSpec:
 
 
 TASKS: dict[str, TaskSpec] = {
-    "CartPole-v1": TaskSpec("classic", "CartPole-v1", "CartPole-v1", ("hieros", "ppo", "dqn")),
-    "Pendulum-v1": TaskSpec("classic", "Pendulum-v1", "Pendulum-v1", ("hieros", "ppo", "sac")),
-    "cartpole-balance-proprio": TaskSpec("dmc_proprio", "cartpole-balance", "Pendulum-v1", ("hieros", "ppo", "sac")),
-    "cartpole-balance-pixels": TaskSpec("dmc_vision", "cartpole-balance", "Pendulum-v1", ("hieros", "ppo", "sac")),
+    "CartPole-v1": TaskSpec("classic", "CartPole-v1", "CartPole-v1", ("hieros", "dreamerv3", "ppo", "dqn")),
+    "Pendulum-v1": TaskSpec("classic", "Pendulum-v1", "Pendulum-v1", ("hieros", "dreamerv3", "ppo", "sac")),
+    "cartpole-balance-proprio": TaskSpec(
+        "dmc_proprio", "cartpole-balance", "Pendulum-v1", ("hieros", "dreamerv3", "ppo", "sac")
+    ),
+    "cartpole-balance-pixels": TaskSpec(
+        "dmc_vision", "cartpole-balance", "Pendulum-v1", ("hieros", "dreamerv3", "ppo", "sac")
+    ),
 }
-ALGOS = ("hieros", "ppo", "dqn", "sac")
+ALGOS = ("hieros", "dreamerv3", "ppo", "dqn", "sac")
+#: Column titles of the table.
+LABELS = {"hieros": "HIEROS small", "dreamerv3": "DreamerV3 XS (sheeprl)", "ppo": "PPO", "dqn": "DQN", "sac": "SAC"}
 EVAL_SEED_OFFSET = 10_000
 
 
@@ -207,6 +215,10 @@ def run_suite_run(run: SuiteRun) -> dict[str, Any]:
     spec = TASKS[run.task]
     if run.algo not in spec.algos:
         raise ValueError(f"algo {run.algo!r} is not run on {run.task!r}; expected one of {spec.algos}")
+    if run.algo == "dreamerv3":
+        from benchmarks.peers import run_dreamerv3
+
+        return run_dreamerv3(run)
     th.set_num_threads(1)
     policy = SUITE_POLICIES[spec.suite]
     if run.algo == "hieros":
@@ -310,6 +322,19 @@ def drop_unfinished_line(path: pathlib.Path) -> None:
             handle.truncate(data.rfind(b"\n") + 1)
 
 
+def append_record(path: pathlib.Path, record: dict[str, Any]) -> None:
+    """Append one run's record to ``runs.jsonl`` as a line, on disk before this returns.
+
+    :param path: the ``runs.jsonl`` file (a last line cut short by a crash is cut off first)
+    :param record: the record of :func:`run_suite_run`
+    """
+    drop_unfinished_line(path)
+    with path.open("a") as handle:
+        handle.write(json.dumps(record) + "\n")
+        handle.flush()
+        os.fsync(handle.fileno())
+
+
 def run_key(run: SuiteRun) -> tuple[Any, ...]:
     """The settings of ``run`` as a hashable tuple (HIEROS keywords as sorted JSON): the keys of :func:`finished_runs`.
 
@@ -397,9 +422,7 @@ def table(records: Sequence[dict[str, Any]]) -> str:
     """
     algos = [a for a in ALGOS if any(r["algo"] == a for r in records)]
     lines = [
-        "| Task | Steps | Final eval | "
-        + " | ".join(f"{a.upper() if a != 'hieros' else 'HIEROS small'}" for a in algos)
-        + " |",
+        "| Task | Steps | Final eval | " + " | ".join(LABELS[a] for a in algos) + " |",
         "|---|---:|---:|" + "---:|" * len(algos),
     ]
     for task in dict.fromkeys(r["task"] for r in records):
@@ -433,7 +456,13 @@ def plot(records: Sequence[dict[str, Any]], path: str | pathlib.Path) -> None:
     import matplotlib.pyplot as plt
 
     tasks = list(dict.fromkeys(r["task"] for r in records))
-    colors = {"hieros": "tab:red", "ppo": "tab:blue", "dqn": "tab:green", "sac": "tab:purple"}
+    colors = {
+        "hieros": "tab:red",
+        "dreamerv3": "tab:orange",
+        "ppo": "tab:blue",
+        "dqn": "tab:green",
+        "sac": "tab:purple",
+    }
     fig, axes = plt.subplots(1, len(tasks), figsize=(4 * len(tasks), 3.2), squeeze=False)
     for ax, task in zip(axes[0], tasks, strict=True):
         for algo in ALGOS:
@@ -443,7 +472,7 @@ def plot(records: Sequence[dict[str, Any]], path: str | pathlib.Path) -> None:
             length = min(len(r["eval_returns"]) for r in runs)
             curves = np.array([r["eval_returns"][:length] for r in runs])
             x = runs[0]["eval_steps"][:length]
-            ax.plot(x, curves.mean(0), color=colors[algo], label=algo, marker=".")
+            ax.plot(x, curves.mean(0), color=colors[algo], label=LABELS[algo], marker=".")
             ax.fill_between(x, curves.min(0), curves.max(0), color=colors[algo], alpha=0.15)
         ax.set_title(task, fontsize=10)
         ax.set_xlabel("agent steps")
@@ -452,6 +481,17 @@ def plot(records: Sequence[dict[str, Any]], path: str | pathlib.Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def _check_peers_extra() -> None:
+    """Fail before training anything when ``dreamerv3`` runs are asked for without sheeprl."""
+    import importlib.util
+
+    if importlib.util.find_spec("sheeprl") is None:
+        raise ImportError(
+            "the dreamerv3 runs need the 'peers' extra (pip install 'sb3-hieros[peers]'); "
+            "leave them out with --algos hieros ppo dqn sac"
+        )
 
 
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
@@ -513,11 +553,11 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         if done:
             print(f"--resume: {len(runs) - len(todo)} of {len(runs)} runs already in {log}", flush=True)
 
+        if any(run.algo == "dreamerv3" for run in todo):
+            _check_peers_extra()
+
         def record_run(record: dict[str, Any]) -> None:
-            with log.open("a") as handle:  # one line per run, on disk before the next run starts
-                handle.write(json.dumps(record) + "\n")
-                handle.flush()
-                os.fsync(handle.fileno())
+            append_record(log, record)  # one line per run, on disk before the next run starts
             report(record)
 
         fresh = iter(execute(run_suite_run, todo, workers=args.workers, report=record_run))
