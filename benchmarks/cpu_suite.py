@@ -1,26 +1,27 @@
-"""What a CPU can show: HIEROS (small preset) against SB3's PPO, DQN and SAC with rl-zoo hyperparameters.
+"""What a CPU can show: HIEROS (small preset) against SB3's PPO, DQN and SAC with rl-zoo hyperparameters and DreamerV3.
 
 Every (task, algorithm, seed) run trains ``--steps`` agent steps (the same for every algorithm; on DMC each agent
 step is 2 control steps, the same for all), is evaluated ``--n-evals`` times, evenly spaced, the last at the end
 (``--eval-episodes`` episodes on a separate env seeded ``seed + 10000``, deterministic policy). Tasks:
 
-============================  ===============================================  ===================
+============================  ===============================================  ==============================
 task                          environment                                       algorithms
-============================  ===============================================  ===================
-``CartPole-v1``               gymnasium                                         hieros, ppo, dqn
-``Pendulum-v1``               gymnasium                                         hieros, ppo, sac
-``cartpole-balance-proprio``  ``suites.make_env("dmc_proprio", ...)``           hieros, ppo, sac
-``cartpole-balance-pixels``   ``suites.make_env("dmc_vision", ...)``, 64x64      hieros, ppo, sac
-============================  ===============================================  ===================
+============================  ===============================================  ==============================
+``CartPole-v1``               gymnasium                                         hieros, dreamerv3, ppo, dqn
+``Pendulum-v1``               gymnasium                                         hieros, dreamerv3, ppo, sac
+``cartpole-balance-proprio``  ``suites.make_env("dmc_proprio", ...)``           hieros, dreamerv3, ppo, sac
+``cartpole-balance-pixels``   ``suites.make_env("dmc_vision", ...)``, 64x64      hieros, dreamerv3, ppo, sac
+============================  ===============================================  ==============================
 
 Baseline hyperparameters are read from rl_zoo3's installed ``hyperparams/<algo>.yml`` (the ``zoo`` extra), as
 ``python -m rl_zoo3.train --algo <algo> --env <id> -n <steps>`` would use them: ``n_envs``, ``policy_kwargs`` and
 ``lin_<x>`` schedules included, schedules and exploration decay running over the ``--steps`` budget. The zoo has no
 dm_control entries, so the DMC tasks use the zoo's ``Pendulum-v1`` entry of the same algorithm (the other
 one-dimensional continuous-control task here), with ``CnnPolicy`` on pixels and SAC's replay capped at the budget.
-HIEROS uses ``preset="small"`` plus ``--hieros-kwargs``. SB3's PPO trains whole rollouts (``n_steps * n_envs``: 256 on
-CartPole, 4096 with the Pendulum entry), so below that budget it trains more steps than the others; the table then
-names the steps it trained.
+HIEROS uses ``preset="small"`` plus ``--hieros-kwargs``. ``dreamerv3`` is sheeprl's DreamerV3 XS, run by
+:mod:`benchmarks.peers` (the ``peers`` extra; without it, runs of it stop the suite before anything trains).
+SB3's PPO trains whole rollouts (``n_steps * n_envs``: 256 on CartPole, 4096 with the Pendulum entry), so below
+that budget it trains more steps than the others; the table then names the steps it trained.
 
 Outputs in ``--out``: ``runs.jsonl`` (one line per finished run, written as it finishes), ``results.json`` (the runs
 of this invocation, in order), ``table.md`` (final return mean +- std over seeds, side by side,
