@@ -35,9 +35,12 @@ import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import asdict
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from benchmarks.cpu_suite import SuiteRun
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -176,9 +179,7 @@ def _checkpoints(log_root: pathlib.Path) -> dict[int, pathlib.Path]:
     return {int(path.name.split("_")[1]): path for path in log_root.rglob("checkpoint/ckpt_*_0.ckpt")}
 
 
-def _evaluate_checkpoints(
-    paths: Sequence[pathlib.Path], task: str, seed: int, episodes: int
-) -> list[tuple[float, float]]:
+def _evaluate_checkpoints(paths: Sequence[pathlib.Path], seed: int, episodes: int) -> list[tuple[float, float]]:
     """Mean and std of the greedy return of each checkpoint, on one env seeded ``seed`` that continues between them."""
     import gymnasium as gym
     import torch as th
@@ -225,7 +226,9 @@ def _evaluate_checkpoints(
     return results
 
 
-def run_dreamerv3(run: Any, extra_overrides: Sequence[str] = (), work_dir: str | pathlib.Path | None = None) -> dict:
+def run_dreamerv3(
+    run: SuiteRun, extra_overrides: Sequence[str] = (), work_dir: str | pathlib.Path | None = None
+) -> dict[str, Any]:
     """Train sheeprl's DreamerV3 on one CPU-suite run and evaluate it as ``cpu_suite`` does.
 
     :param run: a :class:`benchmarks.cpu_suite.SuiteRun` with ``algo="dreamerv3"`` and no HIEROS keywords
@@ -233,7 +236,9 @@ def run_dreamerv3(run: Any, extra_overrides: Sequence[str] = (), work_dir: str |
     :param work_dir: folder of sheeprl's logs and checkpoints, kept; None: a temporary folder, removed at the end
     :return: the ``cpu_suite`` record, with ``"sheeprl"``: version, command line, training and evaluation seconds
     """
-    from benchmarks.cpu_suite import _git_commit
+    import torch as th
+
+    from benchmarks.cpu_suite import EVAL_SEED_OFFSET, _git_commit
 
     if run.algo != ALGO:
         raise ValueError(f"run_dreamerv3 runs algo {ALGO!r}, got {run.algo!r}")
@@ -265,14 +270,10 @@ def run_dreamerv3(run: Any, extra_overrides: Sequence[str] = (), work_dir: str |
         raise RuntimeError(f"sheeprl exited with {finished.returncode}: {' '.join(command)}\n{tail}")
     saved = _checkpoints(log_root)
     chosen = checkpoint_steps(run.steps, run.n_evals, list(saved))
-    import torch as th
-
     threads = th.get_num_threads()
     th.set_num_threads(1)
     try:
-        evaluations = _evaluate_checkpoints(
-            [saved[s] for s in chosen], run.task, run.seed + EVAL_SEED_OFFSET, run.eval_episodes
-        )
+        evaluations = _evaluate_checkpoints([saved[s] for s in chosen], run.seed + EVAL_SEED_OFFSET, run.eval_episodes)
     finally:
         th.set_num_threads(threads)
     wall = time.perf_counter() - start
@@ -294,10 +295,6 @@ def run_dreamerv3(run: Any, extra_overrides: Sequence[str] = (), work_dir: str |
             "eval_s": round(wall - train_s, 1),
         },
     }
-
-
-#: The evaluation env's seed offset of ``cpu_suite``.
-EVAL_SEED_OFFSET = 10_000
 
 
 def _is_path_override(override: str) -> bool:
