@@ -1,26 +1,27 @@
-"""What a CPU can show: HIEROS (small preset) against SB3's PPO, DQN and SAC with rl-zoo hyperparameters.
+"""What a CPU can show: HIEROS (small preset) against SB3's PPO, DQN and SAC with rl-zoo hyperparameters and DreamerV3.
 
 Every (task, algorithm, seed) run trains ``--steps`` agent steps (the same for every algorithm; on DMC each agent
 step is 2 control steps, the same for all), is evaluated ``--n-evals`` times, evenly spaced, the last at the end
 (``--eval-episodes`` episodes on a separate env seeded ``seed + 10000``, deterministic policy). Tasks:
 
-============================  ===============================================  ===================
+============================  ===============================================  ==============================
 task                          environment                                       algorithms
-============================  ===============================================  ===================
-``CartPole-v1``               gymnasium                                         hieros, ppo, dqn
-``Pendulum-v1``               gymnasium                                         hieros, ppo, sac
-``cartpole-balance-proprio``  ``suites.make_env("dmc_proprio", ...)``           hieros, ppo, sac
-``cartpole-balance-pixels``   ``suites.make_env("dmc_vision", ...)``, 64x64      hieros, ppo, sac
-============================  ===============================================  ===================
+============================  ===============================================  ==============================
+``CartPole-v1``               gymnasium                                         hieros, dreamerv3, ppo, dqn
+``Pendulum-v1``               gymnasium                                         hieros, dreamerv3, ppo, sac
+``cartpole-balance-proprio``  ``suites.make_env("dmc_proprio", ...)``           hieros, dreamerv3, ppo, sac
+``cartpole-balance-pixels``   ``suites.make_env("dmc_vision", ...)``, 64x64      hieros, dreamerv3, ppo, sac
+============================  ===============================================  ==============================
 
 Baseline hyperparameters are read from rl_zoo3's installed ``hyperparams/<algo>.yml`` (the ``zoo`` extra), as
 ``python -m rl_zoo3.train --algo <algo> --env <id> -n <steps>`` would use them: ``n_envs``, ``policy_kwargs`` and
 ``lin_<x>`` schedules included, schedules and exploration decay running over the ``--steps`` budget. The zoo has no
 dm_control entries, so the DMC tasks use the zoo's ``Pendulum-v1`` entry of the same algorithm (the other
 one-dimensional continuous-control task here), with ``CnnPolicy`` on pixels and SAC's replay capped at the budget.
-HIEROS uses ``preset="small"`` plus ``--hieros-kwargs``. SB3's PPO trains whole rollouts (``n_steps * n_envs``: 256 on
-CartPole, 4096 with the Pendulum entry), so below that budget it trains more steps than the others; the table then
-names the steps it trained.
+HIEROS uses ``preset="small"`` plus ``--hieros-kwargs``. ``dreamerv3`` is sheeprl's DreamerV3 XS, run by
+:mod:`benchmarks.peers` (the ``peers`` extra; without it, runs of it stop the suite before anything trains).
+SB3's PPO trains whole rollouts (``n_steps * n_envs``: 256 on CartPole, 4096 with the Pendulum entry), so below
+that budget it trains more steps than the others; the table then names the steps it trained.
 
 Outputs in ``--out``: ``runs.jsonl`` (one line per finished run, written as it finishes), ``results.json`` (the runs
 of this invocation, in order), ``table.md`` (final return mean +- std over seeds, side by side,
@@ -63,9 +64,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 __all__ = [
     "ALGOS",
+    "LABELS",
     "TASKS",
     "SuiteRun",
     "TaskSpec",
+    "append_record",
     "finished_runs",
     "recorded_runs",
     "run_key",
@@ -93,12 +96,18 @@ class TaskSpec:
 
 
 TASKS: dict[str, TaskSpec] = {
-    "CartPole-v1": TaskSpec("classic", "CartPole-v1", "CartPole-v1", ("hieros", "ppo", "dqn")),
-    "Pendulum-v1": TaskSpec("classic", "Pendulum-v1", "Pendulum-v1", ("hieros", "ppo", "sac")),
-    "cartpole-balance-proprio": TaskSpec("dmc_proprio", "cartpole-balance", "Pendulum-v1", ("hieros", "ppo", "sac")),
-    "cartpole-balance-pixels": TaskSpec("dmc_vision", "cartpole-balance", "Pendulum-v1", ("hieros", "ppo", "sac")),
+    "CartPole-v1": TaskSpec("classic", "CartPole-v1", "CartPole-v1", ("hieros", "dreamerv3", "ppo", "dqn")),
+    "Pendulum-v1": TaskSpec("classic", "Pendulum-v1", "Pendulum-v1", ("hieros", "dreamerv3", "ppo", "sac")),
+    "cartpole-balance-proprio": TaskSpec(
+        "dmc_proprio", "cartpole-balance", "Pendulum-v1", ("hieros", "dreamerv3", "ppo", "sac")
+    ),
+    "cartpole-balance-pixels": TaskSpec(
+        "dmc_vision", "cartpole-balance", "Pendulum-v1", ("hieros", "dreamerv3", "ppo", "sac")
+    ),
 }
-ALGOS = ("hieros", "ppo", "dqn", "sac")
+ALGOS = ("hieros", "dreamerv3", "ppo", "dqn", "sac")
+#: Column titles of the table.
+LABELS = {"hieros": "HIEROS small", "dreamerv3": "DreamerV3 XS (sheeprl)", "ppo": "PPO", "dqn": "DQN", "sac": "SAC"}
 EVAL_SEED_OFFSET = 10_000
 
 
@@ -207,6 +216,10 @@ def run_suite_run(run: SuiteRun) -> dict[str, Any]:
     spec = TASKS[run.task]
     if run.algo not in spec.algos:
         raise ValueError(f"algo {run.algo!r} is not run on {run.task!r}; expected one of {spec.algos}")
+    if run.algo == "dreamerv3":
+        from benchmarks.peers import run_dreamerv3
+
+        return run_dreamerv3(run)
     th.set_num_threads(1)
     policy = SUITE_POLICIES[spec.suite]
     if run.algo == "hieros":
@@ -310,6 +323,19 @@ def drop_unfinished_line(path: pathlib.Path) -> None:
             handle.truncate(data.rfind(b"\n") + 1)
 
 
+def append_record(path: pathlib.Path, record: dict[str, Any]) -> None:
+    """Append one run's record to ``runs.jsonl`` as a line, on disk before this returns.
+
+    :param path: the ``runs.jsonl`` file (a last line cut short by a crash is cut off first)
+    :param record: the record of :func:`run_suite_run`
+    """
+    drop_unfinished_line(path)
+    with path.open("a") as handle:
+        handle.write(json.dumps(record) + "\n")
+        handle.flush()
+        os.fsync(handle.fileno())
+
+
 def run_key(run: SuiteRun) -> tuple[Any, ...]:
     """The settings of ``run`` as a hashable tuple (HIEROS keywords as sorted JSON): the keys of :func:`finished_runs`.
 
@@ -397,9 +423,7 @@ def table(records: Sequence[dict[str, Any]]) -> str:
     """
     algos = [a for a in ALGOS if any(r["algo"] == a for r in records)]
     lines = [
-        "| Task | Steps | Final eval | "
-        + " | ".join(f"{a.upper() if a != 'hieros' else 'HIEROS small'}" for a in algos)
-        + " |",
+        "| Task | Steps | Final eval | " + " | ".join(LABELS[a] for a in algos) + " |",
         "|---|---:|---:|" + "---:|" * len(algos),
     ]
     for task in dict.fromkeys(r["task"] for r in records):
@@ -433,7 +457,13 @@ def plot(records: Sequence[dict[str, Any]], path: str | pathlib.Path) -> None:
     import matplotlib.pyplot as plt
 
     tasks = list(dict.fromkeys(r["task"] for r in records))
-    colors = {"hieros": "tab:red", "ppo": "tab:blue", "dqn": "tab:green", "sac": "tab:purple"}
+    colors = {
+        "hieros": "tab:red",
+        "dreamerv3": "tab:orange",
+        "ppo": "tab:blue",
+        "dqn": "tab:green",
+        "sac": "tab:purple",
+    }
     fig, axes = plt.subplots(1, len(tasks), figsize=(4 * len(tasks), 3.2), squeeze=False)
     for ax, task in zip(axes[0], tasks, strict=True):
         for algo in ALGOS:
@@ -443,7 +473,7 @@ def plot(records: Sequence[dict[str, Any]], path: str | pathlib.Path) -> None:
             length = min(len(r["eval_returns"]) for r in runs)
             curves = np.array([r["eval_returns"][:length] for r in runs])
             x = runs[0]["eval_steps"][:length]
-            ax.plot(x, curves.mean(0), color=colors[algo], label=algo, marker=".")
+            ax.plot(x, curves.mean(0), color=colors[algo], label=LABELS[algo], marker=".")
             ax.fill_between(x, curves.min(0), curves.max(0), color=colors[algo], alpha=0.15)
         ax.set_title(task, fontsize=10)
         ax.set_xlabel("agent steps")
@@ -452,6 +482,17 @@ def plot(records: Sequence[dict[str, Any]], path: str | pathlib.Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def _check_peers_extra() -> None:
+    """Fail before training anything when ``dreamerv3`` runs are asked for without sheeprl."""
+    import importlib.util
+
+    if importlib.util.find_spec("sheeprl") is None:
+        raise ImportError(
+            "the dreamerv3 runs need the 'peers' extra (pip install 'sb3-hieros[peers]'); "
+            "leave them out with --algos hieros ppo dqn sac"
+        )
 
 
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
@@ -513,11 +554,11 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         if done:
             print(f"--resume: {len(runs) - len(todo)} of {len(runs)} runs already in {log}", flush=True)
 
+        if any(run.algo == "dreamerv3" for run in todo):
+            _check_peers_extra()
+
         def record_run(record: dict[str, Any]) -> None:
-            with log.open("a") as handle:  # one line per run, on disk before the next run starts
-                handle.write(json.dumps(record) + "\n")
-                handle.flush()
-                os.fsync(handle.fileno())
+            append_record(log, record)  # one line per run, on disk before the next run starts
             report(record)
 
         fresh = iter(execute(run_suite_run, todo, workers=args.workers, report=record_run))

@@ -89,7 +89,7 @@ def test_report_tables_recorded_runs_of_any_evaluation_settings(tmp_path):
     reported = main([*args, "--report"])  # hieros has no record: left out
     assert reported == ppo + dqn and (tmp_path / "runs.jsonl").read_text() == log  # nothing trained
     assert "| CartPole-v1 | 64 | 1/2 episodes |" in (tmp_path / "table.md").read_text()
-    with pytest.raises(ValueError, match="records none of the 3 runs"):
+    with pytest.raises(ValueError, match="records none of the 4 runs"):
         main([*args, "--report", "--steps", "32"])
     main([*args, "--algos", "dqn", "--eval-episodes", "1"])  # the same run, evaluated differently
     with pytest.raises(
