@@ -31,8 +31,15 @@ extensions = [
 
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
 root_doc = "index"
-# the benchmark scripts' tables are included into the results pages, not pages of their own
-exclude_patterns = ["_build", "README.md", "**/README.md", "cpu_suite/*.md", "cpu_suite/*/*.md", "sample_efficiency/*.md"]
+# the benchmark scripts' tables are included into the results pages or kept as data, not pages of their own
+exclude_patterns = [
+    "_build",
+    "README.md",
+    "**/README.md",
+    "cpu_suite/*.md",
+    "cpu_suite/*/*.md",
+    "sample_efficiency/*.md",
+]
 myst_enable_extensions = ["colon_fence", "dollarmath"]
 myst_heading_anchors = 3
 
