@@ -13,7 +13,8 @@ Parts (``--part``), each on ``--threads`` torch threads:
 * ``pong``: env steps per second of ``learn`` on ALE Pong 64x64 with the small preset, after ``learning_starts``
   random steps and one untimed warm-up segment, over one timed segment in which every level trains.
 
-The result is written as JSON to ``--out``.
+``--policy-kwargs`` (JSON) are passed to every model as ``policy_kwargs`` (e.g. ``{"bf16": true}``). The result is
+written as JSON to ``--out``.
 """
 
 from __future__ import annotations
@@ -40,36 +41,47 @@ def _level_updates(model: Any) -> list[int]:
     return list(counts or [])
 
 
-def time_learn(steps: int, learning_starts: int, seed: int) -> dict[str, Any]:
+def time_learn(
+    steps: int, learning_starts: int, seed: int, policy_kwargs: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """Seconds of ``learn(steps)`` on CartPole-v1, small preset (construction not timed).
 
     :param steps: environment steps
     :param learning_starts: random steps before training
     :param seed: seed of the model and its env
+    :param policy_kwargs: the model's ``policy_kwargs`` (None: none)
     :return: ``seconds`` and ``level_updates``
     """
     from sb3_hieros import HIEROS
 
-    model = HIEROS("MlpPolicy", "CartPole-v1", preset="small", seed=seed, learning_starts=learning_starts)
+    model = HIEROS(
+        "MlpPolicy",
+        "CartPole-v1",
+        preset="small",
+        seed=seed,
+        learning_starts=learning_starts,
+        policy_kwargs=policy_kwargs,
+    )
     start = time.perf_counter()
     model.learn(steps)
     seconds = time.perf_counter() - start
     return {"seconds": seconds, "level_updates": _level_updates(model)}
 
 
-def time_predict(calls: int, warmup: int, seed: int) -> dict[str, Any]:
+def time_predict(calls: int, warmup: int, seed: int, policy_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
     """Per-call latency of deterministic ``predict`` on one CartPole env with the state threaded.
 
     :param calls: timed calls
     :param warmup: untimed calls first
     :param seed: seed of the model and of the env
+    :param policy_kwargs: the model's ``policy_kwargs`` (None: none)
     :return: ``median_ms``, ``mean_ms`` and ``calls``
     """
     import gymnasium as gym
 
     from sb3_hieros import HIEROS
 
-    model = HIEROS("MlpPolicy", "CartPole-v1", preset="small", seed=seed)
+    model = HIEROS("MlpPolicy", "CartPole-v1", preset="small", seed=seed, policy_kwargs=policy_kwargs)
     env = gym.make("CartPole-v1")
     obs, _ = env.reset(seed=seed)
     state, start = None, True
@@ -102,19 +114,24 @@ def _suites() -> Any:
     return module
 
 
-def time_pong(steps: int, warmup: int, learning_starts: int, seed: int) -> dict[str, Any]:
+def time_pong(
+    steps: int, warmup: int, learning_starts: int, seed: int, policy_kwargs: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """Env steps per second of ``learn`` on ALE Pong 64x64, small preset, over one timed segment.
 
     :param steps: env steps of the timed segment
     :param warmup: env steps of the untimed segment before it (after the random ``learning_starts`` steps)
     :param learning_starts: untimed random steps first
     :param seed: seed of the model and of the env
+    :param policy_kwargs: the model's ``policy_kwargs`` (None: none)
     :return: ``steps_per_s`` and ``level_updates`` (updates per level in the timed segment)
     """
     from sb3_hieros import HIEROS
 
     env = _suites().make_atari_env("Pong", seed=seed)
-    model = HIEROS("CnnPolicy", env, preset="small", seed=seed, learning_starts=learning_starts)
+    model = HIEROS(
+        "CnnPolicy", env, preset="small", seed=seed, learning_starts=learning_starts, policy_kwargs=policy_kwargs
+    )
     model.learn(learning_starts + warmup)
     before = _level_updates(model)
     start = time.perf_counter()
@@ -137,14 +154,16 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--pong-steps", type=int, default=128)
     parser.add_argument("--pong-warmup", type=int, default=32)
     parser.add_argument("--pong-learning-starts", type=int, default=256)
+    parser.add_argument("--policy-kwargs", type=json.loads, default={}, help="policy_kwargs of the models, as JSON")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    kwargs = args.policy_kwargs
     if args.part == "learn":
-        result = time_learn(args.learn_steps, args.learning_starts, args.seed)
+        result = time_learn(args.learn_steps, args.learning_starts, args.seed, kwargs)
     elif args.part == "predict":
-        result = time_predict(args.predict_calls, args.predict_warmup, args.seed)
+        result = time_predict(args.predict_calls, args.predict_warmup, args.seed, kwargs)
     else:
-        result = time_pong(args.pong_steps, args.pong_warmup, args.pong_learning_starts, args.seed)
+        result = time_pong(args.pong_steps, args.pong_warmup, args.pong_learning_starts, args.seed, kwargs)
     import sb3_hieros
 
     result["sb3_hieros"] = str(pathlib.Path(sb3_hieros.__file__).resolve().parent)

@@ -24,6 +24,8 @@ load falls on both: ``learn`` (seconds of ``model.learn(3000)`` on CartPole-v1, 
 ``predict`` (latency of deterministic ``predict`` on one env with the recurrent state threaded) and ``pong`` (env steps
 per second of ``learn`` on ALE Pong 64x64, small preset, every level training). It prints each side's median and range
 over the repetitions and the speed-ups (ref time / our time, our steps/s / ref steps/s) as ``name: value`` last.
+``--policy-kwargs`` and ``--ref-policy-kwargs`` (JSON) set the models' ``policy_kwargs`` of each side, e.g.
+``--ref HEAD --policy-kwargs '{"bf16": true}'`` times the bf16 opt-in against float32 in the same code.
 """
 
 from __future__ import annotations
@@ -513,6 +515,10 @@ def run_compare(args: argparse.Namespace) -> None:
         f"--pong-warmup={args.pong_warmup}",
         f"--pong-learning-starts={args.pong_learning_starts}",
     ]
+    side_options = {
+        "here": [*options, f"--policy-kwargs={json.dumps(args.policy_kwargs)}"],
+        "ref": [*options, f"--policy-kwargs={json.dumps(args.ref_policy_kwargs)}"],
+    }
     print(environment_header())
     print(
         f"working tree {root} against {args.ref} ({commit[:12]}): parts {' '.join(args.parts)}, {args.reps} "
@@ -521,7 +527,8 @@ def run_compare(args: argparse.Namespace) -> None:
     print(
         f"learn: CartPole-v1 learn({args.learn_steps}), learning_starts {args.learning_starts}; predict: "
         f"{args.predict_calls} calls; pong: {args.pong_steps} timed env steps after {args.pong_learning_starts} "
-        f"random + {args.pong_warmup} warm-up steps"
+        f"random + {args.pong_warmup} warm-up steps; policy_kwargs here {args.policy_kwargs}, ref "
+        f"{args.ref_policy_kwargs}"
     )
     samples: dict[str, dict[str, list[float]]] = {part: {"here": [], "ref": []} for part in args.parts}
     with _gitref.checkout(commit, root) as tree:
@@ -531,7 +538,7 @@ def run_compare(args: argparse.Namespace) -> None:
             for part in args.parts:
                 figure, unit, _ = COMPARED[part]
                 for side in order:
-                    result = time_part(trees[side], part, options, args.timeout)
+                    result = time_part(trees[side], part, side_options[side], args.timeout)
                     samples[part][side].append(result[figure])
                     extra = f", level updates {result['level_updates']}" if "level_updates" in result else ""
                     print(f"  rep {rep + 1} {part:<8} {side:<4} {result[figure]:10.3f} {unit}{extra}", flush=True)
@@ -597,6 +604,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     compare.add_argument("--seed", type=int, default=0)
     compare.add_argument("--timeout", type=float, default=3600.0, help="seconds per timing (default 3600)")
+    compare.add_argument(
+        "--policy-kwargs",
+        type=json.loads,
+        default={},
+        help="policy_kwargs of the working tree's models, JSON (e.g. '{\"bf16\": true}')",
+    )
+    compare.add_argument(
+        "--ref-policy-kwargs", type=json.loads, default={}, help="policy_kwargs of the ref's models, JSON"
+    )
     compare.set_defaults(func=run_compare)
     return parser
 

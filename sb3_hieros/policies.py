@@ -102,7 +102,7 @@ class HierosPolicy(BasePolicy):
         models' learning rate; kept for the SB3 policy signature)
     :param config: the resolved :class:`~sb3_hieros.config.HierosConfig` or its ``dataclasses.asdict`` dict; None
         for the ``"paper"`` preset
-    :param bf16: bfloat16 autocast opt-in of the world models
+    :param bf16: bfloat16 autocast opt-in of the world models and of the actor-critic and subgoal-autoencoder losses
     :param compile: ``torch.compile`` opt-in of the world models' sequence models
     :param normalize_images: SB3's keyword: True scales uint8 images (``x / 255 - 0.5`` in the world model); False
         takes every rank-3 Box as an image as it is (float image-like inputs; the decoder predicts them in their

@@ -41,9 +41,12 @@ def test_compare_against_head_on_tiny_settings(capsys):
             "16",
             "--predict-calls",
             "3",
+            "--policy-kwargs",
+            '{"bf16": true}',
         ]
     )
     out = capsys.readouterr().out
+    assert "policy_kwargs here {'bf16': True}, ref {}" in out
     for name in ("learn_speedup", "predict_speedup", "learn_speedup_of_medians"):
         assert f"\n{name}: " in out
     assert "rep 1 learn    here" in out and "rep 1 learn    ref " in out

@@ -443,3 +443,20 @@ def test_diagnostics_check_their_inputs():
         sub.decode_subgoal(th.zeros(4, 5))
     with pytest.raises(ValueError, match="h must have shape"):
         sub.decode_state_observation(th.zeros(2, 3), th.zeros(2, sub.z_dim))
+
+
+@pytest.mark.parametrize("action_space", [spaces.Discrete(3), spaces.Box(-1.0, 1.0, (2,), np.float32)])
+def test_bf16_losses_stay_close_to_float32(action_space):
+    sub = make_subactor(action_space=action_space, bf16=True)
+    full = make_subactor(action_space=action_space)
+    full.load_state_dict(sub.state_dict())
+    state, goal = observed_state(sub), random_subgoal(sub)  # acting stays in float32: both act alike
+    assert th.equal(sub.act(state, goal, deterministic=True), full.act(state, goal, deterministic=True))
+    th.manual_seed(3)
+    metrics = sub.train_step(random_samples(sub)).metrics
+    th.manual_seed(3)
+    full_metrics = full.train_step(random_samples(full)).metrics
+    assert all(math.isfinite(v) for v in metrics.values()), metrics
+    assert all(p.dtype == th.float32 for p in sub.parameters())
+    for key in ("wm/loss", "actor/loss", "critic/extrinsic_loss", "ae/loss"):
+        assert metrics[key] == pytest.approx(full_metrics[key], rel=0.1, abs=1e-3), key

@@ -19,6 +19,7 @@ from sb3_hieros.agent.actor_critic import ActorCritic
 from sb3_hieros.agent.subgoal import SubgoalAutoencoder
 from sb3_hieros.config import HierosConfig
 from sb3_hieros.nn.guard import step_if_finite
+from sb3_hieros.nn.networks import bf16_autocast
 from sb3_hieros.nn.optim import user_optimizer
 from sb3_hieros.spaces import subgoal_space
 
@@ -141,6 +142,8 @@ class LevelLearner(nn.Module):
     decoded_subgoal_input: bool
     autoencoder: SubgoalAutoencoder
     actor_critic: ActorCritic
+    #: compute the actor-critic and autoencoder losses under a bfloat16 autocast (:func:`learn_from_imagination`)
+    bf16: bool = False
 
     def _build_learners(self, h_dim: int, feat_dim: int, kind: str, classes: int, groups: int, gradient: str) -> None:
         """The autoencoder on h, then the actor-critic (:func:`level_actor_critic`) and their optimisers.
@@ -210,7 +213,9 @@ def learn_from_imagination(
 
     Actor (eq. 4.6-4.9) and critics (eq. 4.3 terms) each take one guarded step (:func:`step_if_finite`): a skipped
     actor or critic step also undoes the return normalisers' update, and the slow critics follow only a taken critic
-    step. The autoencoder (eq. 4.2) trains on ``h_all`` detached. Every gradient stays in its own module.
+    step. The autoencoder (eq. 4.2) trains on ``h_all`` detached. Every gradient stays in its own module. With
+    ``level.bf16`` both losses are computed under a bfloat16 autocast (:func:`~sb3_hieros.nn.networks.bf16_autocast`);
+    the backward passes and the optimiser steps run after it.
 
     :param level: the level whose modules and optimisers train
     :param feats: (M+1, N, F) actor inputs of s_0..s_M
@@ -226,7 +231,8 @@ def learn_from_imagination(
     ac = level.actor_critic
     out: dict[str, th.Tensor] = {}
     retnorm_state = {k: v.clone() for k, v in ac.normalizers.state_dict().items()}
-    actor_loss, critic_loss, ac_metrics = ac.loss(feats, actions, rewards, continues)
+    with bf16_autocast(level.bf16, feats.device):
+        actor_loss, critic_loss, ac_metrics = ac.loss(feats, actions, rewards, continues)
     actor_params = list(ac.actor_parameters())
     level.actor_optimizer.zero_grad(set_to_none=True)
     actor_loss.backward(inputs=actor_params)  # never accumulates into world model / autoencoder / critics
@@ -243,7 +249,8 @@ def learn_from_imagination(
         ac.update_slow_critics()
 
     ae_params = list(level.autoencoder.parameters())
-    ae_loss, ae_metrics = level.autoencoder.loss(h_all.detach().reshape(-1, h_all.shape[-1]))
+    with bf16_autocast(level.bf16, feats.device):
+        ae_loss, ae_metrics = level.autoencoder.loss(h_all.detach().reshape(-1, h_all.shape[-1]))
     level.ae_optimizer.zero_grad(set_to_none=True)
     ae_loss.backward(inputs=ae_params)
     out["ae/grad_norm"] = nn.utils.clip_grad_norm_(ae_params, level.config.subgoal.grad_clip)

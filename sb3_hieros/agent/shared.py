@@ -61,6 +61,7 @@ class SharedLevel(LevelLearner):
     :param level: index i >= 1
     :param subgoal_input: False for the top level (no subgoal input, no subgoal reward)
     :param decoded_subgoal_input: feed the decoded subgoal instead of the code (ablation 5.3.8)
+    :param bf16: compute the actor-critic and autoencoder losses under a bfloat16 autocast
     """
 
     def __init__(
@@ -73,9 +74,11 @@ class SharedLevel(LevelLearner):
         level: int,
         subgoal_input: bool,
         decoded_subgoal_input: bool = False,
+        bf16: bool = False,
     ) -> None:
         super().__init__()
         sg = config.subgoal
+        self.bf16 = bool(bf16)
         self.config, self.level, self.window = config, level, window
         self.state_dim, self.h_dim, self.stoch_dim = state_dim, h_dim, stoch_dim
         self.subgoal_input = bool(subgoal_input)
@@ -209,6 +212,7 @@ class SharedWorldModelHierarchy(Hierarchy):
                     level=i,
                     subgoal_input=i < self.n_levels - 1,
                     decoded_subgoal_input=self.config.decoded_subgoal_input,
+                    bf16=level0.bf16,
                 )
             )
         return levels

@@ -109,7 +109,7 @@ class Subactor(LevelLearner):
     :param subgoal_input: False for the top level: no subgoal input, no subgoal reward or critic
     :param decoded_subgoal_input: feed the actor and critics the decoded subgoal (h space) instead of the one-hot code
         (ablation 5.3.8; default False = thesis); has no effect at the top level
-    :param bf16: bfloat16 autocast opt-in of the world model
+    :param bf16: bfloat16 autocast opt-in of the world model and of the actor-critic and autoencoder losses
     :param compile: ``torch.compile`` opt-in of the world model's sequence model
     :param observation_options: SB3's observation keywords of the world model (level 0), or None
     """
@@ -134,6 +134,7 @@ class Subactor(LevelLearner):
         self.action_space = action_space
         self.subgoal_input = bool(subgoal_input)
         self.decoded_subgoal_input = bool(decoded_subgoal_input) and self.subgoal_input
+        self.bf16 = bool(bf16)
         self.action_kind = kind
         self.action_groups = groups
         self.action_classes = classes

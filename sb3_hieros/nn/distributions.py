@@ -125,7 +125,8 @@ class TwoHotSymlog:
     Used by the reward and value heads (DreamerV3): the network outputs ``logits`` over the bins, the training target
     is the two-hot encoding of ``symlog(target)``, the prediction is ``symexp(E[bin])``.
 
-    :param logits: (..., K) unnormalised log-probabilities over the bins
+    :param logits: (..., K) unnormalised log-probabilities over the bins (taken to float32, as in every distribution
+        here, so that a bfloat16 network output is read out at full precision)
     :param bins: (K,) increasing bin centres in symlog space (:func:`symlog_bins`)
     """
 
@@ -135,7 +136,7 @@ class TwoHotSymlog:
             raise ValueError(
                 f"logits must have last dim {bins.numel()} (the number of bins), got {tuple(logits.shape)}"
             )
-        self.logits = logits
+        self.logits = logits.float()
         self.bins = bins
 
     @property
@@ -219,7 +220,7 @@ class OneHotCategoricalST:
         if event_ndims < 0:
             raise ValueError(f"event_ndims must be >= 0, got {event_ndims}")
         self.unimix, self.event_ndims = unimix, event_ndims
-        self._raw_logits = logits
+        self._raw_logits = logits = logits.float()
         self.probs = unimix_probs(logits, unimix)
         self._logits: th.Tensor | None = None
 
@@ -316,8 +317,8 @@ class BoundedNormal:
             raise ValueError(f"mean_raw {tuple(mean_raw.shape)} and std_raw {tuple(std_raw.shape)} must match")
         if not 0.0 < min_std < max_std:
             raise ValueError(f"need 0 < min_std < max_std, got min_std={min_std}, max_std={max_std}")
-        self.mean = th.tanh(mean_raw)
-        self.std = (max_std - min_std) * th.sigmoid(std_raw + 2.0) + min_std
+        self.mean = th.tanh(mean_raw.float())
+        self.std = (max_std - min_std) * th.sigmoid(std_raw.float() + 2.0) + min_std
 
     def rsample(self, generator: th.Generator | None = None) -> th.Tensor:
         """Reparameterised sample in [-1, 1] (straight-through clip).
@@ -358,7 +359,7 @@ class ContinueBernoulli:
     """
 
     def __init__(self, logits: th.Tensor) -> None:
-        self.logits = logits
+        self.logits = logits.float()
 
     @property
     def mean(self) -> th.Tensor:
@@ -399,5 +400,5 @@ def symlog_mse(prediction: th.Tensor, target: th.Tensor, event_ndims: int = 1) -
         raise ValueError(f"prediction {tuple(prediction.shape)} and target {tuple(target.shape)} must match")
     if not 0 <= event_ndims <= prediction.dim():
         raise ValueError(f"event_ndims must be in [0, {prediction.dim()}], got {event_ndims}")
-    err = (prediction - symlog(target)).pow(2)
+    err = (prediction.float() - symlog(target)).pow(2)
     return err.sum(tuple(range(-event_ndims, 0))) if event_ndims > 0 else err

@@ -285,13 +285,43 @@ def evaluation_mode(module: nn.Module) -> Iterator[None]:
         module.train(was_training)
 
 
+def bf16_autocast(enabled: bool, device: th.device) -> contextlib.AbstractContextManager:
+    """A bfloat16 ``torch.autocast`` block on ``device`` where ``enabled``, else a block that changes nothing.
+
+    Under it, matrix products and convolutions run in bfloat16 (fast on CPUs with native bf16 instructions, e.g.
+    AVX512-BF16 or AMX, and on recent GPUs); the distributions of :mod:`sb3_hieros.nn.distributions` take their
+    parameters back to float32. Enter it around a forward pass and a loss, not around ``backward`` or an optimiser
+    step: autocast caches the bf16 copies of the weights until the block ends, and an in-place update inside it would
+    leave them stale.
+
+    :param enabled: whether to autocast
+    :param device: device of the computation
+    """
+    if not enabled:
+        return contextlib.nullcontext()
+    return th.autocast(device_type=device.type, dtype=th.bfloat16)
+
+
+def without_autocast(device_type: str) -> contextlib.AbstractContextManager:
+    """A block that runs outside any autocast: ``torch.autocast(enabled=False)`` where one is active, else nothing
+    (entering the autocast context costs more than the single-step maths it would guard).
+
+    :param device_type: ``"cpu"``, ``"cuda"``, ...
+    """
+    if th.is_autocast_enabled(device_type):
+        return th.autocast(device_type=device_type, enabled=False)
+    return contextlib.nullcontext()
+
+
 __all__ = [
     "MLP",
     "ChannelLayerNorm",
     "ConvDecoder",
     "ConvEncoder",
+    "bf16_autocast",
     "conv_stack_sizes",
     "evaluation_mode",
     "preprocess_image",
     "trunc_normal_init_",
+    "without_autocast",
 ]

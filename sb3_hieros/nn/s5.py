@@ -35,6 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from sb3_hieros.nn.networks import without_autocast
 from sb3_hieros.nn.scan import (
     associative_scan_resettable,
     associative_scan_resettable_real,
@@ -138,14 +139,6 @@ def _check_state(state: object, expected_shape: tuple[int, ...], layout: str) ->
     if tuple(state.shape) != expected_shape:
         raise ValueError(f"state has shape {tuple(state.shape)}, expected {layout} = {expected_shape}")
     return state
-
-
-def _without_autocast(device_type: str) -> contextlib.AbstractContextManager:
-    """A block that runs outside any autocast: ``torch.autocast(enabled=False)`` where one is active, else nothing
-    (entering the autocast context costs more than the single-step maths it would guard)."""
-    if torch.is_autocast_enabled(device_type):
-        return torch.autocast(device_type=device_type, enabled=False)
-    return contextlib.nullcontext()
 
 
 class S5Layer(nn.Module):
@@ -360,11 +353,11 @@ class S5Layer(nn.Module):
         self, x: torch.Tensor, state: torch.Tensor | None, reset: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """``step`` without input checks."""
-        with _without_autocast(x.device.type):
+        with without_autocast(x.device.type):
             u = x.to(self.B.dtype)
             lambda_bar, w_in, w_out = self._step_weights()
         bu = F.linear(u, w_in).to(u.dtype)  # (B, 2P), in an enclosing autocast's dtype, then back
-        with _without_autocast(x.device.type):
+        with without_autocast(x.device.type):
             new_state = torch.view_as_complex(bu.view(x.shape[0], self.d_state, 2))  # (B, P)
             if state is not None:
                 carried = lambda_bar * state

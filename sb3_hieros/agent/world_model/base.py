@@ -18,8 +18,10 @@ and ``a_{t-1}`` are zeroed and the recurrent state is reset, so the first ``h`` 
 The public methods check their arguments; the underscore methods they call (``_observe``, ``_obs_step``,
 ``_img_step``) trust them and are what the hierarchy's acting and training loops use.
 
-Opt-ins (off by default): ``bf16=True`` runs encoder, decoder, heads and the dense layers around the sequence model
-under bfloat16 autocast (the S5 scan and its complex state stay in fp32; useful only on CPUs with native bf16), and
+Opt-ins (off by default): ``bf16=True`` computes the training loss (:meth:`WorldModel.loss`: encoder, decoder,
+heads and the dense layers around the sequence model) under a bfloat16 autocast; the S5 scan, its complex state and
+RSSM's recurrent loop stay in fp32, and so do acting and imagination (step form on small batches, where bf16 would
+add casts and save nothing). It pays only on CPUs with native bf16 (AVX512-BF16, AMX) and on GPUs.
 ``compile=True`` compiles the convolution stacks and the sequence model with ``torch.compile``.
 """
 
@@ -47,7 +49,7 @@ from sb3_hieros.config import WorldModelConfig
 from sb3_hieros.nn.distributions import ContinueBernoulli, OneHotCategoricalST, TwoHotSymlog, symlog_bins
 from sb3_hieros.nn.guard import step_if_finite
 from sb3_hieros.nn.metrics import metric_floats
-from sb3_hieros.nn.networks import MLP, evaluation_mode
+from sb3_hieros.nn.networks import MLP, bf16_autocast, evaluation_mode
 from sb3_hieros.type_aliases import SequenceSamples
 
 __all__ = ["REWARD_BINS", "ObsDict", "WorldModel"]
@@ -82,7 +84,7 @@ class WorldModel(nn.Module):
         MultiDiscrete, MultiBinary, or a Dict of them)
     :param action_dim: size of the action vector (one-hot size for Discrete actions and subgoals, Box entries)
     :param config: world-model hyperparameters
-    :param bf16: run matmul/conv-heavy parts under bfloat16 autocast (opt-in, see the module docstring)
+    :param bf16: compute the training loss under a bfloat16 autocast (opt-in, see the module docstring)
     :param compile: ``torch.compile`` the convolution stacks and the sequence model (opt-in)
     :param observation_options: SB3's observation keywords (image scaling, a user's features extractor), or None
     """
@@ -139,9 +141,7 @@ class WorldModel(nn.Module):
         return self.reward_bins.device
 
     def _autocast(self) -> contextlib.AbstractContextManager:
-        if not self.bf16:
-            return contextlib.nullcontext()
-        return th.autocast(device_type=self.device.type, dtype=th.bfloat16)
+        return bf16_autocast(self.bf16, self.device)
 
     def _dist(self, raw: th.Tensor) -> OneHotCategoricalST:
         """Grouped categorical over z from flat raw logits (..., G*K), with unimix."""
@@ -190,8 +190,7 @@ class WorldModel(nn.Module):
         return self.spec.check(observation, (batch,), "observation"), action, check_is_first(is_first, (batch,)), batch
 
     def _embed(self, obs: dict[str, th.Tensor], lead: tuple[int, ...]) -> th.Tensor:
-        with self._autocast():
-            return self.encoder(obs, lead)
+        return self.encoder(obs, lead)
 
     # ---------------------------------------------------------------- interface of the sequence model
 
@@ -358,9 +357,7 @@ class WorldModel(nn.Module):
         :param state: any state
         :return: distribution with batch shape of ``state``
         """
-        with self._autocast():
-            logits = self.reward_head(self.features(state))
-        return TwoHotSymlog(logits.float(), self.reward_bins)
+        return TwoHotSymlog(self.reward_head(self.features(state)), self.reward_bins)
 
     def cont_dist(self, state: LatentState) -> ContinueBernoulli:
         """p(c_t | h_t, z_t), c_t = 1 - is_terminal_t.
@@ -368,9 +365,7 @@ class WorldModel(nn.Module):
         :param state: any state
         :return: Bernoulli with batch shape of ``state``
         """
-        with self._autocast():
-            logits = self.cont_head(self.features(state))
-        return ContinueBernoulli(logits.float().squeeze(-1))
+        return ContinueBernoulli(self.cont_head(self.features(state)).squeeze(-1))
 
     def reward(self, state: LatentState) -> th.Tensor:
         """Predicted reward (expectation of the two-hot head, raw units).
@@ -395,9 +390,7 @@ class WorldModel(nn.Module):
         :param state: any state
         :return: tensor (..., *obs_shape), or a dict of them for Dict spaces
         """
-        with self._autocast():
-            pred = self.decoder(self.features(state))
-        out = self.decoder.mean(pred)
+        out = self.decoder.mean(self.decoder(self.features(state)))
         return out if self.spec.is_dict else out[SINGLE_KEY]
 
     def prior_entropy(self, state: LatentState) -> th.Tensor:
@@ -442,20 +435,25 @@ class WorldModel(nn.Module):
         return SequenceSamples(samples.observations, actions, samples.rewards, is_first, samples.is_terminal, None)
 
     def _loss(self, samples: Any, state: LatentState | None) -> tuple[th.Tensor, dict[str, th.Tensor], LatentState]:
-        """:meth:`loss` of a trusted batch (float previous actions, bool ``is_first``)."""
+        """:meth:`loss` of a trusted batch (float previous actions, bool ``is_first``), under the ``bf16`` autocast."""
+        with self._autocast():
+            return self._loss_terms(samples, state)
+
+    def _loss_terms(
+        self, samples: Any, state: LatentState | None
+    ) -> tuple[th.Tensor, dict[str, th.Tensor], LatentState]:
         # images are converted to x/255 - 0.5 once, for the encoder and as the decoder's target
         obs = self.spec.preprocess(self.spec.as_dict(samples.observations))
         post, prior_logits = self._observe(obs, samples.actions, samples.is_first, state, False)
         lead = tuple(post.batch_shape)
         feat = self.features(post)
-        with self._autocast():
-            pred = self.decoder(feat)
-            reward_logits = self.reward_head(feat)
-            cont_logits = self.cont_head(feat)
+        pred = self.decoder(feat)
+        reward_logits = self.reward_head(feat)
+        cont_logits = self.cont_head(feat)
         obs_nll = self.decoder.nll(pred, obs, lead)
-        reward_nll = -TwoHotSymlog(reward_logits.float(), self.reward_bins).log_prob(samples.rewards.float())
+        reward_nll = -TwoHotSymlog(reward_logits, self.reward_bins).log_prob(samples.rewards.float())
         cont_target = 1.0 - samples.is_terminal.float()
-        cont_nll = -ContinueBernoulli(cont_logits.float().squeeze(-1)).log_prob(cont_target)
+        cont_nll = -ContinueBernoulli(cont_logits.squeeze(-1)).log_prob(cont_target)
         post_probs = post.logits.exp()  # (B, T, G, K), one exp for both KL terms and the entropy metric
         kl_dyn = _grouped_kl(post.logits.detach(), prior_logits, post_probs.detach())  # (B, T), summed over groups
         kl_rep = _grouped_kl(post.logits, prior_logits.detach(), post_probs)

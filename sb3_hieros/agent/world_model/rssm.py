@@ -12,7 +12,7 @@ from sb3_hieros.agent.world_model.base import ObsDict, WorldModel
 from sb3_hieros.agent.world_model.latent import LatentState
 from sb3_hieros.agent.world_model.layers import InputLayer, LayerNormGRUCell
 from sb3_hieros.config import WorldModelConfig
-from sb3_hieros.nn.networks import MLP, trunc_normal_init_
+from sb3_hieros.nn.networks import MLP, trunc_normal_init_, without_autocast
 
 __all__ = ["RSSMWorldModel"]
 
@@ -27,7 +27,7 @@ class RSSMWorldModel(WorldModel):
     :param observation_space: observation space of this level
     :param action_dim: size of the action vector
     :param config: world-model hyperparameters (``kind == "rssm"``; the S5 fields are unused)
-    :param bf16: bfloat16 autocast opt-in (outside the time loop only)
+    :param bf16: bfloat16 autocast of the training loss (outside the time loop)
     :param compile: ``torch.compile`` the loop cell
     """
 
@@ -78,20 +78,20 @@ class RSSMWorldModel(WorldModel):
         state = self.initial_state(batch) if state is None else state
         embed = self._embed(obs, (batch, length))
         keep = (~is_first).unsqueeze(-1).to(actions.dtype)  # (B, T, 1)
-        with self._autocast():
-            embed_pre = self.post_embed(embed).float()  # (B, T, hidden), hoisted
-        action_pre = self.inp.action(actions * keep)  # (B, T, hidden), hoisted
+        # hoisted out of the loop (under a bf16 autocast, these run in bf16 and are taken back to float32)
+        embed_pre = self.post_embed(embed).float()  # (B, T, hidden)
+        action_pre = self.inp.action(actions * keep).float()  # (B, T, hidden)
         stoch, deter = state.stoch, state.deter
         stochs, deters, logits = [], [], []
-        for e_t, a_t, k_t in zip(embed_pre.unbind(1), action_pre.unbind(1), keep.unbind(1), strict=True):
-            deter, post_raw = self._cell(stoch * k_t, a_t, deter * k_t, e_t)
-            stoch, post_logits = self._draw(post_raw, deterministic)
-            stochs.append(stoch)
-            deters.append(deter)
-            logits.append(post_logits)
+        with without_autocast(embed.device.type):  # the recurrent state stays in float32
+            for e_t, a_t, k_t in zip(embed_pre.unbind(1), action_pre.unbind(1), keep.unbind(1), strict=True):
+                deter, post_raw = self._cell(stoch * k_t, a_t, deter * k_t, e_t)
+                stoch, post_logits = self._draw(post_raw, deterministic)
+                stochs.append(stoch)
+                deters.append(deter)
+                logits.append(post_logits)
         deter_seq = th.stack(deters, 1)  # (B, T, D)
-        with self._autocast():
-            prior_raw = self.prior_net(deter_seq)  # hoisted
+        prior_raw = self.prior_net(deter_seq)  # hoisted
         prior_logits = self._normalise(prior_raw)
         post = LatentState(th.stack(stochs, 1), deter_seq, deter_seq, th.stack(logits, 1), prior_logits)
         return post, prior_logits
@@ -102,17 +102,14 @@ class RSSMWorldModel(WorldModel):
         batch = int(action.shape[0])
         keep = (~is_first).unsqueeze(-1).to(action.dtype)
         embed = self._embed(obs, (batch,))
-        with self._autocast():
-            embed_pre = self.post_embed(embed).float()
+        embed_pre = self.post_embed(embed)
         deter, post_raw = self._cell(state.stoch * keep, self.inp.action(action * keep), state.deter * keep, embed_pre)
         stoch, post_logits = self._draw(post_raw, deterministic)
-        with self._autocast():
-            prior_raw = self.prior_net(deter)
+        prior_raw = self.prior_net(deter)
         return LatentState(stoch, deter, deter, post_logits, self._normalise(prior_raw))
 
     def _img_step(self, state: LatentState, action: th.Tensor, deterministic: bool) -> tuple[LatentState, th.Tensor]:
-        with self._autocast():
-            deter = self.gru(self.inp(state.stoch, action), state.deter).float()
-            prior_raw = self.prior_net(deter)
+        deter = self.gru(self.inp(state.stoch, action), state.deter)
+        prior_raw = self.prior_net(deter)
         stoch, prior_logits = self._draw(prior_raw, deterministic)
         return LatentState(stoch, deter, deter, prior_logits, prior_logits), prior_logits

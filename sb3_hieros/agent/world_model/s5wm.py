@@ -25,7 +25,7 @@ class S5WorldModel(WorldModel):
     :param observation_space: observation space of this level
     :param action_dim: size of the action vector
     :param config: world-model hyperparameters (``kind == "s5"``)
-    :param bf16: bfloat16 autocast opt-in
+    :param bf16: bfloat16 autocast of the training loss (the S5 scan stays in fp32)
     :param compile: ``torch.compile`` the S5 stack's parallel scan (``sb3_hieros.nn.s5.compile_s5``; the step form
         used for acting and imagination stays eager)
     """
@@ -82,17 +82,15 @@ class S5WorldModel(WorldModel):
     ) -> tuple[LatentState, th.Tensor]:
         batch, length = actions.shape[:2]
         embed = self._embed(obs, (batch, length))  # (B, T, E)
-        with self._autocast():
-            post_raw = self.post_net(embed)
+        post_raw = self.post_net(embed)
         stoch, post_logits = self._draw(post_raw, deterministic)  # (B, T, G*K), (B, T, G, K)
         first_prev = th.zeros_like(stoch[:, :1]) if state is None else state.stoch.unsqueeze(1)
         prev_stoch = th.cat([first_prev, stoch[:, :-1]], 1)  # z_{t-1}
         keep = (~is_first).unsqueeze(-1).to(stoch.dtype)  # (B, T, 1)
-        with self._autocast():
-            u = self.inp(prev_stoch * keep, actions * keep)  # (B, T, H)
-            out, seq = self.sequence_model._forward(u.float(), is_first, None if state is None else state.seq)
-            deter = self._deterministic_state(seq, out)  # (B, T, D)
-            prior_raw = self.prior_net(out)
+        u = self.inp(prev_stoch * keep, actions * keep)  # (B, T, H)
+        out, seq = self.sequence_model._forward(u.float(), is_first, None if state is None else state.seq)
+        deter = self._deterministic_state(seq, out)  # (B, T, D)
+        prior_raw = self.prior_net(out)
         prior_logits = self._normalise(prior_raw)
         return LatentState(stoch, deter, seq, post_logits, prior_logits), prior_logits
 
@@ -104,11 +102,10 @@ class S5WorldModel(WorldModel):
         if reset is not None:
             keep = (~reset).unsqueeze(-1).to(stoch.dtype)
             stoch, action = stoch * keep, action * keep
-        with self._autocast():
-            u = self.inp(stoch, action)
-            out, seq = self.sequence_model._step(u.float(), state.seq, reset)
-            deter = self._deterministic_state(seq, out)
-            prior_raw = self.prior_net(out)
+        u = self.inp(stoch, action)
+        out, seq = self.sequence_model._step(u, state.seq, reset)
+        deter = self._deterministic_state(seq, out)
+        prior_raw = self.prior_net(out)
         return deter, seq, prior_raw
 
     def _obs_step(
@@ -117,8 +114,7 @@ class S5WorldModel(WorldModel):
         batch = int(action.shape[0])
         deter, seq, prior_raw = self._prior_step(state, action, is_first)
         embed = self._embed(obs, (batch,))
-        with self._autocast():
-            post_raw = self.post_net(embed)
+        post_raw = self.post_net(embed)
         stoch, post_logits = self._draw(post_raw, deterministic)
         return LatentState(stoch, deter, seq, post_logits, self._normalise(prior_raw))
 
