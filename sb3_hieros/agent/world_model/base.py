@@ -146,7 +146,7 @@ class WorldModel(nn.Module):
     def _dist(self, raw: th.Tensor) -> OneHotCategoricalST:
         """Grouped categorical over z from flat raw logits (..., G*K), with unimix."""
         return OneHotCategoricalST(
-            raw.float().reshape(*raw.shape[:-1], self.groups, self.classes), self.config.unimix, event_ndims=1
+            raw.reshape(*raw.shape[:-1], self.groups, self.classes), self.config.unimix, event_ndims=1
         )
 
     def _draw(self, raw: th.Tensor, deterministic: bool) -> tuple[th.Tensor, th.Tensor]:
