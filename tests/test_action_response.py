@@ -1,0 +1,68 @@
+"""benchmarks/action_response.py: the data policies, the argument checks and a tiny end-to-end run."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from benchmarks import action_response as bench
+
+
+@pytest.mark.parametrize(
+    ("argv", "match"),
+    [
+        (["--kinds", "gru"], "--kinds"),
+        (["--kinds", ","], "--kinds"),
+        (["--seeds", ","], "--seeds"),
+        (["--updates", "0"], "--updates"),
+        (["--wm-overrides", '{"kind": "rssm"}'], "--wm-overrides"),
+        (["--wm-overrides", "[1]"], "--wm-overrides"),
+    ],
+)
+def test_bad_arguments_raise_before_any_work(monkeypatch, argv, match):
+    monkeypatch.setattr(bench, "run", lambda *args: pytest.fail("trained despite a bad argument"))
+    with pytest.raises(ValueError, match=match):
+        bench.main(argv)
+
+
+@pytest.mark.parametrize("kind", ["uniform", "smooth", "small"])
+def test_open_loop_actions_lie_in_the_bounds(kind):
+    actions = bench.open_loop_actions(kind, 200, np.random.default_rng(0))
+    assert actions.shape == (200, 1) and actions.dtype == np.float32
+    assert np.all(np.abs(actions) <= 1.0) and actions.std() > 0.05
+
+
+def test_unknown_action_kind_is_named():
+    with pytest.raises(ValueError, match="'bang'"):
+        bench.open_loop_actions("bang", 3, np.random.default_rng(0))
+
+
+def test_feedback_policy_follows_the_sign_of_the_projection():
+    rng = np.random.default_rng(0)
+    w = np.array([1.0, 0.0])
+    plus = np.array([bench.feedback_at_bounds(np.array([2.0, 5.0]), w, rng)[0] for _ in range(500)])
+    minus = np.array([bench.feedback_at_bounds(np.array([-2.0, 5.0]), w, rng)[0] for _ in range(500)])
+    assert np.all(np.abs(plus) <= 1.0)
+    assert plus.mean() > 0.5 and minus.mean() < -0.5  # at the bound, noise clipped to [-1, 1]
+    assert (plus == 1.0).mean() > 0.4
+
+
+def test_held_out_copies_replay_the_recorded_episode():
+    data, copies = bench.collect(["small"], seed=3, branch=True)
+    assert data["obs"].shape[0] == 1 and bool(data["is_first"][0, 0]) and not bool(data["is_first"][0, 1:].any())
+    episode, step, env = copies[0]
+    obs, *_ = env.step(data["prev_action"][episode, step + 1].numpy())
+    np.testing.assert_allclose(obs, data["obs"][episode, step + 1].numpy(), rtol=1e-5, atol=1e-6)
+
+
+def test_tiny_run_reports_every_figure(capsys):
+    results = bench.main(["--kinds", "s5", "--updates", "2", "--episodes", "1"])
+    names = [*bench.OBS_NAMES, "reward"]
+    for mode in ("mode", "sampled"):
+        for name in names:
+            assert f"s5/0/{mode}_{name}_slope" in results
+            assert f"s5/0/{mode}_{name}_corr" in results
+    assert math.isfinite(results["s5/0/mode_pole_angular_velocity_slope"])
+    assert "s5 seed 0: 2 updates" in capsys.readouterr().out
