@@ -2,9 +2,10 @@
 
 This file is run as a script by ``benchmarks/equivalence.py`` against the ``sb3_hieros`` of the working tree and of a
 git revision (``benchmarks/_gitref.py``), so it imports nothing from ``benchmarks`` and builds every model through the
-public constructor keywords both sides accept (``preset``, ``config_overrides`` and SB3's standard keywords). It
-writes one JSON object: per case, SHA-256 digests of every parameter and buffer, of every optimiser state, of the
-replay of every level, of a prediction after training and of the global random states, and the counters.
+public constructor keywords both sides accept (``preset``, ``config_overrides``, SB3's standard keywords and
+``policy_kwargs={"bf16": False}``). It writes one JSON object: per case, SHA-256 digests of every parameter and
+buffer, of every optimiser state, of the replay of every level, of a prediction after training and of the global
+random states, and the counters.
 
 Usage: ``python benchmarks/_equivalence_cases.py --out result.json [--cases a b ...] [--steps N] [--save-dir D]`` or,
 to fingerprint models saved with ``--save-dir`` (by any revision) after loading them, ``... --load-dir D``.
@@ -284,6 +285,8 @@ def run_case(name: str, steps: int, save_dir: str | None = None) -> dict[str, An
         batch_size=2,
         learning_starts=20,
         buffer_size=500,
+        # float32 pinned: the default bf16="auto" depends on the CPU, and older revisions default to float32
+        policy_kwargs={"bf16": False},
         seed=0,
     )
     model.learn(steps)

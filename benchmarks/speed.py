@@ -25,7 +25,8 @@ load falls on both: ``learn`` (seconds of ``model.learn(3000)`` on CartPole-v1, 
 per second of ``learn`` on ALE Pong 64x64, small preset, every level training). It prints each side's median and range
 over the repetitions and the speed-ups (ref time / our time, our steps/s / ref steps/s) as ``name: value`` last.
 ``--policy-kwargs`` and ``--ref-policy-kwargs`` (JSON) set the models' ``policy_kwargs`` of each side, e.g.
-``--ref HEAD --policy-kwargs '{"bf16": true}'`` times the bf16 opt-in against float32 in the same code.
+``--ref HEAD --policy-kwargs '{"bf16": true}' --ref-policy-kwargs '{"bf16": false}'`` times bf16 losses against
+float32 in the same code (the default, ``"auto"``, is bf16 on CPUs with native bf16 and float32 elsewhere).
 """
 
 from __future__ import annotations

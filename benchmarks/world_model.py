@@ -48,7 +48,7 @@ from sb3_hieros.agent.world_model import (
 )
 from sb3_hieros.config import WorldModelConfig, get_preset
 from sb3_hieros.nn.distributions import OneHotCategoricalST
-from sb3_hieros.nn.networks import MLP
+from sb3_hieros.nn.networks import MLP, native_bf16
 
 RESULTS: dict[str, str] = {}
 
@@ -278,7 +278,7 @@ def part_b_paper(args: argparse.Namespace) -> None:
     modes = [("fp32", False, False)]
     if not args.no_compile:
         modes.append(("fp32_compile", False, True))
-    if bf16_hardware() or args.force_bf16:
+    if native_bf16("cpu") or args.force_bf16:
         modes.append(("bf16", True, False))
         if not args.no_compile:
             modes.append(("bf16_compile", True, True))
@@ -329,7 +329,7 @@ def imagination(model: WorldModel, n_actions: int, units: int, starts: int, hori
 
 def part_c(args: argparse.Namespace) -> None:
     reps = 5 if args.quick else 10
-    precisions = ("fp32", "bf16") if bf16_hardware() or args.force_bf16 else ("fp32",)
+    precisions = ("fp32", "bf16") if native_bf16("cpu") or args.force_bf16 else ("fp32",)
     for preset, obs_shape, image, n_actions in (("small", (4,), False, 2), ("paper", (3, 64, 64), True, 18)):
         if preset not in args.presets:
             continue
@@ -364,16 +364,6 @@ def part_c(args: argparse.Namespace) -> None:
 # ----------------------------------------------------------------------------------------------------------------------
 
 
-def bf16_hardware() -> bool:
-    """Whether the CPU has native bf16 matmul support (AVX512-BF16 or AMX); without it bf16 autocast is emulated."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            flags = next((line for line in f if line.startswith("flags")), "").split()
-    except OSError:
-        return False
-    return "avx512_bf16" in flags or "amx_bf16" in flags
-
-
 def matmul_peak(reps: int = 10) -> float:
     a, b = th.randn(4096, 1024), th.randn(1024, 1024)
     for _ in range(3):
@@ -399,7 +389,7 @@ def part_d(args: argparse.Namespace) -> None:
     modes = [("fp32", False, False)]
     if not args.no_compile:
         modes.append(("fp32_compile", False, True))
-    if bf16_hardware() or args.force_bf16:
+    if native_bf16("cpu") or args.force_bf16:
         modes.append(("bf16", True, False))
     for mode, bf16, compile in modes:
         model = build("s5", config, space, 18, bf16=bf16, compile=compile)

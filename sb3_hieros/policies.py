@@ -43,6 +43,7 @@ from torch import nn
 from sb3_hieros.agent.hierarchy import Hierarchy, HierarchyState, make_hierarchy
 from sb3_hieros.agent.world_model import LatentState, ObservationOptions
 from sb3_hieros.config import HierosConfig, config_from_dict
+from sb3_hieros.nn.networks import check_bf16
 from sb3_hieros.nn.optim import check_optimizer_options
 from sb3_hieros.spaces import check_finite_observations, check_spaces
 
@@ -102,7 +103,10 @@ class HierosPolicy(BasePolicy):
         models' learning rate; kept for the SB3 policy signature)
     :param config: the resolved :class:`~sb3_hieros.config.HierosConfig` or its ``dataclasses.asdict`` dict; None
         for the ``"paper"`` preset
-    :param bf16: bfloat16 autocast opt-in of the world models and of the actor-critic and subgoal-autoencoder losses
+    :param bf16: bfloat16 autocast of the training losses (world models, actor-critics, subgoal autoencoders; acting,
+        imagination and the S5 scan stay float32): ``"auto"`` (default) where the device computes bf16 natively (CPUs
+        with AVX512-BF16 or AMX, CUDA GPUs with bf16; :func:`~sb3_hieros.nn.networks.native_bf16`), ``True`` always,
+        ``False`` never (float32 throughout)
     :param compile: ``torch.compile`` opt-in of the world models' sequence models
     :param normalize_images: SB3's keyword: True scales uint8 images (``x / 255 - 0.5`` in the world model); False
         takes every rank-3 Box as an image as it is (float image-like inputs; the decoder predicts them in their
@@ -134,7 +138,7 @@ class HierosPolicy(BasePolicy):
         action_space: spaces.Space,
         lr_schedule: Schedule,
         config: Mapping[str, Any] | HierosConfig | None = None,
-        bf16: bool = False,
+        bf16: bool | str = "auto",
         compile: bool = False,
         normalize_images: bool = True,
         optimizer_class: type[th.optim.Optimizer] | None = None,
@@ -157,7 +161,7 @@ class HierosPolicy(BasePolicy):
             squash_output=isinstance(action_space, spaces.Box),
         )
         self.config = config_from_dict(config)
-        self.bf16 = bool(bf16)
+        self.bf16 = check_bf16(bf16)
         self.compile = bool(compile)
         self.images_channel_first = bool(images_channel_first)
         #: SB3's policy attributes (None: HIEROS's AdamW per learner / its own encoder)

@@ -44,6 +44,17 @@ def test_gamma_is_every_levels_discount(tmp_path):
         HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(gamma=1.5))
 
 
+def test_bf16_defaults_to_auto_is_saved_and_a_bad_value_is_named(tmp_path):
+    model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs())
+    assert model.policy.bf16 == "auto"
+    assert all(level.bf16 == "auto" and level.world_model.bf16 == "auto" for level in model.policy.hierarchy.levels)
+    forced = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(policy_kwargs=dict(bf16=False)))
+    forced.save(tmp_path / "model.zip")
+    assert HIEROS.load(tmp_path / "model.zip").policy.bf16 is False
+    with pytest.raises(ValueError, match="bf16 must be False, True or 'auto', got 'yes'"):
+        HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(policy_kwargs=dict(bf16="yes")))
+
+
 def test_optimizer_class_and_kwargs_reach_every_optimiser(tmp_path):
     kwargs = tiny_kwargs(
         policy_kwargs=dict(optimizer_class=th.optim.Adam, optimizer_kwargs=dict(eps=1e-6, weight_decay=1e-4))

@@ -6,7 +6,10 @@ from sb3_hieros.nn.networks import (
     MLP,
     ConvDecoder,
     ConvEncoder,
+    bf16_autocast,
+    check_bf16,
     conv_stack_sizes,
+    native_bf16,
     preprocess_image,
     trunc_normal_init_,
 )
@@ -125,3 +128,23 @@ def test_bad_inputs():
         dec(th.zeros(2, 6))
     with pytest.raises(ValueError, match="out_shape"):
         ConvDecoder(5, (1, 0, 8))
+
+
+@pytest.mark.parametrize("value", [1, 0, "true", "on", None, "Auto"])
+def test_check_bf16_names_a_value_it_does_not_take(value):
+    with pytest.raises(ValueError, match=f"bf16 must be False, True or 'auto', got {value!r}"):
+        check_bf16(value)
+    assert [check_bf16(v) for v in (True, False, "auto")] == [True, False, "auto"]
+
+
+def test_bf16_auto_autocasts_exactly_where_the_device_computes_bf16_natively():
+    a, b = th.randn(4, 8), th.randn(8, 3)
+    cpu = th.device("cpu")
+    with bf16_autocast("auto", cpu):
+        auto = (a @ b).dtype
+    assert auto == (th.bfloat16 if native_bf16("cpu") else th.float32)
+    with bf16_autocast(True, cpu):
+        assert (a @ b).dtype == th.bfloat16
+    with bf16_autocast(False, cpu):
+        assert (a @ b).dtype == th.float32
+    assert native_bf16("meta") is False

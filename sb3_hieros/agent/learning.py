@@ -142,8 +142,9 @@ class LevelLearner(nn.Module):
     decoded_subgoal_input: bool
     autoencoder: SubgoalAutoencoder
     actor_critic: ActorCritic
-    #: compute the actor-critic and autoencoder losses under a bfloat16 autocast (:func:`learn_from_imagination`)
-    bf16: bool = False
+    #: compute the actor-critic and autoencoder losses under a bfloat16 autocast (:func:`learn_from_imagination`):
+    #: True, False or "auto" (where the device computes bf16 natively)
+    bf16: bool | str = False
 
     def _build_learners(self, h_dim: int, feat_dim: int, kind: str, classes: int, groups: int, gradient: str) -> None:
         """The autoencoder on h, then the actor-critic (:func:`level_actor_critic`) and their optimisers.

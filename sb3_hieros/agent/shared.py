@@ -43,6 +43,7 @@ from sb3_hieros.agent.subgoal import max_cosine_subgoal_reward, novelty_reward
 from sb3_hieros.agent.world_model import LatentState
 from sb3_hieros.config import HierosConfig
 from sb3_hieros.nn.metrics import metric_floats
+from sb3_hieros.nn.networks import check_bf16
 from sb3_hieros.spaces import stacked_state_space, subgoal_space
 from sb3_hieros.type_aliases import LevelUpdate, Observation, SequenceSamples
 
@@ -61,7 +62,8 @@ class SharedLevel(LevelLearner):
     :param level: index i >= 1
     :param subgoal_input: False for the top level (no subgoal input, no subgoal reward)
     :param decoded_subgoal_input: feed the decoded subgoal instead of the code (ablation 5.3.8)
-    :param bf16: compute the actor-critic and autoencoder losses under a bfloat16 autocast
+    :param bf16: compute the actor-critic and autoencoder losses under a bfloat16 autocast: ``True``, ``False`` or
+        ``"auto"`` (where the device computes bf16 natively)
     """
 
     def __init__(
@@ -74,11 +76,11 @@ class SharedLevel(LevelLearner):
         level: int,
         subgoal_input: bool,
         decoded_subgoal_input: bool = False,
-        bf16: bool = False,
+        bf16: bool | str = False,
     ) -> None:
         super().__init__()
         sg = config.subgoal
-        self.bf16 = bool(bf16)
+        self.bf16 = check_bf16(bf16)
         self.config, self.level, self.window = config, level, window
         self.state_dim, self.h_dim, self.stoch_dim = state_dim, h_dim, stoch_dim
         self.subgoal_input = bool(subgoal_input)

@@ -46,6 +46,7 @@ from sb3_hieros.agent.world_model import (
 )
 from sb3_hieros.config import HierosConfig
 from sb3_hieros.nn.metrics import metric_floats
+from sb3_hieros.nn.networks import check_bf16
 from sb3_hieros.spaces import action_layout, stacked_state_space
 from sb3_hieros.type_aliases import LevelUpdate, Observation, SequenceSamples
 
@@ -109,7 +110,8 @@ class Subactor(LevelLearner):
     :param subgoal_input: False for the top level: no subgoal input, no subgoal reward or critic
     :param decoded_subgoal_input: feed the actor and critics the decoded subgoal (h space) instead of the one-hot code
         (ablation 5.3.8; default False = thesis); has no effect at the top level
-    :param bf16: bfloat16 autocast opt-in of the world model and of the actor-critic and autoencoder losses
+    :param bf16: bfloat16 autocast of the world model's and of the actor-critic and autoencoder losses: ``True``,
+        ``False`` or ``"auto"`` (where the device computes bf16 natively, :func:`~sb3_hieros.nn.networks.native_bf16`)
     :param compile: ``torch.compile`` opt-in of the world model's sequence model
     :param observation_options: SB3's observation keywords of the world model (level 0), or None
     """
@@ -122,7 +124,7 @@ class Subactor(LevelLearner):
         level: int = 0,
         subgoal_input: bool = True,
         decoded_subgoal_input: bool = False,
-        bf16: bool = False,
+        bf16: bool | str = False,
         compile: bool = False,
         observation_options: ObservationOptions | None = None,
     ) -> None:
@@ -134,7 +136,7 @@ class Subactor(LevelLearner):
         self.action_space = action_space
         self.subgoal_input = bool(subgoal_input)
         self.decoded_subgoal_input = bool(decoded_subgoal_input) and self.subgoal_input
-        self.bf16 = bool(bf16)
+        self.bf16 = check_bf16(bf16)
         self.action_kind = kind
         self.action_groups = groups
         self.action_classes = classes

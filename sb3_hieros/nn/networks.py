@@ -7,6 +7,7 @@ them on the output. Images are channel-first (C, H, W), as produced by SB3's ``V
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 from collections.abc import Iterator, Sequence
 
@@ -285,7 +286,35 @@ def evaluation_mode(module: nn.Module) -> Iterator[None]:
         module.train(was_training)
 
 
-def bf16_autocast(enabled: bool, device: th.device) -> contextlib.AbstractContextManager:
+def check_bf16(value: object) -> bool | str:
+    """Validate a ``bf16`` option.
+
+    :param value: ``False``, ``True`` or ``"auto"``
+    :return: the value
+    :raises ValueError: for anything else (``1``, ``"true"``, ...), which is not coerced
+    """
+    if isinstance(value, bool) or value == "auto":
+        return value  # type: ignore[return-value]
+    raise ValueError(f"bf16 must be False, True or 'auto', got {value!r}")
+
+
+@functools.cache
+def native_bf16(device_type: str) -> bool:
+    """Whether the device computes bfloat16 matrix products natively: a CPU with AVX512-BF16 or AMX-BF16, a CUDA GPU
+    with bf16 support. Elsewhere a bf16 autocast is emulated and slower than float32.
+
+    :param device_type: ``"cpu"``, ``"cuda"``, ...
+    :return: True where native
+    """
+    if device_type == "cpu":
+        capability = th._C._cpu._get_cpu_capability() if hasattr(th._C, "_cpu") else {}
+        return bool(capability.get("avx512_bf16") or capability.get("amx_bf16"))
+    if device_type == "cuda":
+        return th.cuda.is_available() and th.cuda.is_bf16_supported()
+    return False
+
+
+def bf16_autocast(enabled: bool | str, device: th.device) -> contextlib.AbstractContextManager:
     """A bfloat16 ``torch.autocast`` block on ``device`` where ``enabled``, else a block that changes nothing.
 
     Under it, matrix products and convolutions run in bfloat16 (fast on CPUs with native bf16 instructions, e.g.
@@ -294,9 +323,11 @@ def bf16_autocast(enabled: bool, device: th.device) -> contextlib.AbstractContex
     step: autocast caches the bf16 copies of the weights until the block ends, and an in-place update inside it would
     leave them stale.
 
-    :param enabled: whether to autocast
+    :param enabled: ``True``, ``False`` or ``"auto"`` (where :func:`native_bf16` holds for the device)
     :param device: device of the computation
     """
+    if enabled == "auto":
+        enabled = native_bf16(device.type)
     if not enabled:
         return contextlib.nullcontext()
     return th.autocast(device_type=device.type, dtype=th.bfloat16)
@@ -319,8 +350,10 @@ __all__ = [
     "ConvDecoder",
     "ConvEncoder",
     "bf16_autocast",
+    "check_bf16",
     "conv_stack_sizes",
     "evaluation_mode",
+    "native_bf16",
     "preprocess_image",
     "trunc_normal_init_",
     "without_autocast",

@@ -18,10 +18,11 @@ and ``a_{t-1}`` are zeroed and the recurrent state is reset, so the first ``h`` 
 The public methods check their arguments; the underscore methods they call (``_observe``, ``_obs_step``,
 ``_img_step``) trust them and are what the hierarchy's acting and training loops use.
 
-Opt-ins (off by default): ``bf16=True`` computes the training loss (:meth:`WorldModel.loss`: encoder, decoder,
+Options (off by default): ``bf16=True`` computes the training loss (:meth:`WorldModel.loss`: encoder, decoder,
 heads and the dense layers around the sequence model) under a bfloat16 autocast; the S5 scan, its complex state and
 RSSM's recurrent loop stay in fp32, and so do acting and imagination (step form on small batches, where bf16 would
-add casts and save nothing). It pays only on CPUs with native bf16 (AVX512-BF16, AMX) and on GPUs.
+add casts and save nothing). It pays only on CPUs with native bf16 (AVX512-BF16, AMX) and on GPUs; ``bf16="auto"``
+turns it on exactly there (:func:`~sb3_hieros.nn.networks.native_bf16`).
 ``compile=True`` compiles the convolution stacks and the sequence model with ``torch.compile``.
 """
 
@@ -49,7 +50,7 @@ from sb3_hieros.config import WorldModelConfig
 from sb3_hieros.nn.distributions import ContinueBernoulli, OneHotCategoricalST, TwoHotSymlog, symlog_bins
 from sb3_hieros.nn.guard import step_if_finite
 from sb3_hieros.nn.metrics import metric_floats
-from sb3_hieros.nn.networks import MLP, bf16_autocast, evaluation_mode
+from sb3_hieros.nn.networks import MLP, bf16_autocast, check_bf16, evaluation_mode
 from sb3_hieros.type_aliases import SequenceSamples
 
 __all__ = ["REWARD_BINS", "ObsDict", "WorldModel"]
@@ -84,7 +85,8 @@ class WorldModel(nn.Module):
         MultiDiscrete, MultiBinary, or a Dict of them)
     :param action_dim: size of the action vector (one-hot size for Discrete actions and subgoals, Box entries)
     :param config: world-model hyperparameters
-    :param bf16: compute the training loss under a bfloat16 autocast (opt-in, see the module docstring)
+    :param bf16: compute the training loss under a bfloat16 autocast: ``True``, ``False`` or ``"auto"`` (see the module
+        docstring)
     :param compile: ``torch.compile`` the convolution stacks and the sequence model (opt-in)
     :param observation_options: SB3's observation keywords (image scaling, a user's features extractor), or None
     """
@@ -96,7 +98,7 @@ class WorldModel(nn.Module):
         observation_space: spaces.Space,
         action_dim: int,
         config: WorldModelConfig,
-        bf16: bool = False,
+        bf16: bool | str = False,
         compile: bool = False,
         observation_options: ObservationOptions | None = None,
     ) -> None:
@@ -111,7 +113,7 @@ class WorldModel(nn.Module):
         self.stoch_dim = self.groups * self.classes
         self.deter_dim = config.deter_dim
         self.feat_dim = self.deter_dim + self.stoch_dim
-        self.bf16 = bf16
+        self.bf16 = check_bf16(bf16)
         self.compile = compile
         self.encoder = make_observation_encoder(self.spec, config, observation_options)
         self.embed_dim = self.encoder.out_dim
