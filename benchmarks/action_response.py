@@ -6,7 +6,9 @@ run per seed to show. On DMC cartpole-balance from proprioception (action repeat
 * **training data**: ``--episodes`` episodes, the first with uniformly random actions, the others with a
   state-feedback policy at the bounds, ``clip(sign(w . o_t) + 0.7 eps, -1, 1)`` with a random ``w`` per episode and
   ``eps ~ N(0, 1)``: the kind of data an agent whose deterministic action sits at the bounds collects, where the
-  action is largely predictable from the state (``--data uniform`` gives random-action episodes only);
+  action is largely predictable from the state; ``--data one-policy`` uses one ``w`` for every episode, as an agent's
+  data comes from one policy, so the action is predictable from the state alone and not only from the episode's
+  history; ``--data uniform`` gives random-action episodes only;
 * **training**: each world model (the ``small`` preset's, ``--kinds`` ``s5`` and/or ``rssm``, with
   ``--wm-overrides`` applied) makes ``--updates`` updates on 16 x 16 chunks sampled uniformly from the episodes,
   each chunk starting from the posterior state before it (recomputed every 100 updates, as the replay context does);
@@ -19,7 +21,8 @@ run per seed to show. On DMC cartpole-balance from proprioception (action repeat
   cart position, the pole angle's cosine and sine, the cart velocity and the pole's angular velocity.
 
 Run from the repo root: ``python -m benchmarks.action_response [--kinds s5,rssm] [--seeds 0,1] [--updates N]
-[--wm-overrides JSON]``. The last lines print every figure as ``kind/seed/name: value``.
+[--data feedback|one-policy|uniform] [--wm-overrides JSON]``. The last lines print every figure as
+``kind/seed/name: value``.
 """
 
 from __future__ import annotations
@@ -77,7 +80,9 @@ def open_loop_actions(kind: str, n: int, rng: np.random.Generator) -> np.ndarray
 
 
 def collect(kinds: Sequence[str], seed: int, branch: bool) -> tuple[dict[str, th.Tensor], list[tuple[int, int, Any]]]:
-    """One episode per entry of ``kinds`` (``"feedback"`` or an :func:`open_loop_actions` kind), stacked.
+    """One episode per entry of ``kinds``, stacked: ``"feedback"`` (:func:`feedback_at_bounds` with a new ``w`` per
+    episode), ``"one_policy"`` (the same with one ``w`` for every episode of the call) or an :func:`open_loop_actions`
+    kind.
 
     :param kinds: the policy of each episode
     :param seed: base seed (episode ``e`` resets with ``seed * 1000 + e``)
@@ -92,7 +97,9 @@ def collect(kinds: Sequence[str], seed: int, branch: bool) -> tuple[dict[str, th
         env = make_env(*TASK, seed=seed * 1000 + e)
         obs, _ = env.reset(seed=seed * 1000 + e)
         w = rng.normal(size=obs.shape[0])
-        planned = None if kind == "feedback" else open_loop_actions(kind, 10_000, rng)
+        if kind == "one_policy":
+            w = np.random.default_rng(seed).normal(size=obs.shape[0])
+        planned = None if kind in ("feedback", "one_policy") else open_loop_actions(kind, 10_000, rng)
         o, pa, r = [obs], [np.zeros(1, np.float32)], [0.0]
         t = 0
         while True:
@@ -200,7 +207,7 @@ def run(
     results: dict[str, float] = {}
     held_out, copies = collect(["smooth", "small", "uniform"], seed=99, branch=True)
     for seed in seeds:
-        policies = ["uniform"] + ["feedback" if data_kind == "feedback" else "uniform"] * (episodes - 1)
+        policies = ["uniform"] + [data_kind.replace("-", "_")] * (episodes - 1)
         data, _ = collect(policies, seed=1 + seed, branch=False)
         for kind in kinds:
             th.manual_seed(seed)
@@ -231,7 +238,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, float]:
     parser.add_argument("--seeds", default="0", help="comma-separated seeds (data and initialisation)")
     parser.add_argument("--updates", type=int, default=2400, help="world-model updates per model")
     parser.add_argument("--episodes", type=int, default=16, help="training episodes (500 agent steps each)")
-    parser.add_argument("--data", default="feedback", choices=("feedback", "uniform"), help="training policy")
+    parser.add_argument(
+        "--data", default="feedback", choices=("feedback", "one-policy", "uniform"), help="training policy"
+    )
     parser.add_argument("--wm-overrides", default="{}", help="JSON dict of WorldModelConfig fields")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     args = parser.parse_args(argv)

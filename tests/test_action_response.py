@@ -66,3 +66,18 @@ def test_tiny_run_reports_every_figure(capsys):
             assert f"s5/0/{mode}_{name}_corr" in results
     assert math.isfinite(results["s5/0/mode_pole_angular_velocity_slope"])
     assert "s5 seed 0: 2 updates" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(("kind", "shared"), [("one_policy", True), ("feedback", False)])
+def test_one_policy_data_uses_one_feedback_gain_for_every_episode(monkeypatch, kind, shared):
+    gains = []
+    policy = bench.feedback_at_bounds
+
+    def record(obs, w, rng):
+        gains.append(tuple(w))
+        return policy(obs, w, rng)
+
+    monkeypatch.setattr(bench, "feedback_at_bounds", record)
+    data, _ = bench.collect([kind, kind], seed=4, branch=False)
+    assert data["obs"].shape[0] == 2
+    assert (len(set(gains)) == 1) is shared
