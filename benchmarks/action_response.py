@@ -96,7 +96,7 @@ def collect(kinds: Sequence[str], seed: int, branch: bool) -> tuple[dict[str, th
         rng = np.random.default_rng(seed * 1000 + e)
         env = make_env(*TASK, seed=seed * 1000 + e)
         obs, _ = env.reset(seed=seed * 1000 + e)
-        w = rng.normal(size=obs.shape[0])
+        w = rng.normal(size=obs.shape[0])  # drawn for every kind, so an episode's noise is the same whichever w it uses
         if kind == "one_policy":
             w = np.random.default_rng(seed).normal(size=obs.shape[0])
         planned = None if kind in ("feedback", "one_policy") else open_loop_actions(kind, 10_000, rng)

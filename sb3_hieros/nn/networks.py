@@ -307,7 +307,9 @@ def native_bf16(device_type: str) -> bool:
     :return: True where native
     """
     if device_type == "cpu":
-        capability = th._C._cpu._get_cpu_capability() if hasattr(th._C, "_cpu") else {}
+        # torch's own CPU feature table (private, hence guarded: without it, no native bf16 is assumed)
+        get_capability = getattr(getattr(th._C, "_cpu", None), "_get_cpu_capability", None)
+        capability = get_capability() if get_capability is not None else {}
         return bool(capability.get("avx512_bf16") or capability.get("amx_bf16"))
     if device_type == "cuda":
         return th.cuda.is_available() and th.cuda.is_bf16_supported()
