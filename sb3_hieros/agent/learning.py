@@ -236,11 +236,13 @@ def learn_from_imagination(
         actor_loss, critic_loss, ac_metrics = ac.loss(feats, actions, rewards, continues)
     actor_params = list(ac.actor_parameters())
     level.actor_optimizer.zero_grad(set_to_none=True)
-    actor_loss.backward(inputs=actor_params)  # never accumulates into world model / autoencoder / critics
+    level.critic_optimizer.zero_grad(set_to_none=True)
+    # One backward pass for both: the actor loss reaches no critic parameter (its values come from detached critic
+    # parameters) and the critic loss no actor parameter (it sees detached features and returns), so each parameter
+    # gets exactly its own loss's gradient; nothing accumulates into world model or autoencoder.
+    (actor_loss + critic_loss).backward(inputs=actor_params + list(ac.critic_parameters()))
     out["actor/grad_norm"] = nn.utils.clip_grad_norm_(actor_params, clip)
     actor_ok = step_if_finite(level.actor_optimizer, actor_loss, out["actor/grad_norm"])
-    level.critic_optimizer.zero_grad(set_to_none=True)
-    critic_loss.backward(inputs=list(ac.critic_parameters()))
     for name, critic in ac.critics.items():
         out[f"critic/{name}_grad_norm"] = nn.utils.clip_grad_norm_(critic.net.parameters(), clip)
     critic_ok = step_if_finite(level.critic_optimizer, critic_loss, *(out[f"critic/{n}_grad_norm"] for n in ac.critics))
