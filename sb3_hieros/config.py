@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 WORLD_MODEL_KINDS = ("s5", "rssm")
-DETER_SOURCES = ("state", "output")
+DETER_SOURCES = ("state", "output", "gru")
 IMAG_GRADIENTS = ("auto", "reinforce", "dynamics")
 HIGHER_LEVEL_INPUTS = ("all", "last")
 EXTRINSIC_REWARD_LEVELS = ("all", "top")
@@ -83,7 +83,8 @@ class WorldModelConfig:
     :param dropout: dropout inside the S5 blocks
     :param deter_dim: size of the deterministic state h_t
     :param deter_from: ``"state"``: h_t read out from the S5 internal states (thesis 5.3.5, default);
-        ``"output"``: h_t from the stack output m_t
+        ``"output"``: h_t from the stack output m_t; ``"gru"``: h_t = GRU(h_{t-1}, m_t), a DreamerV3 GRU cell on the
+        stack output, and the prior reads h_t instead of m_t (not in the thesis; see the continuous-control results)
     :param stoch_groups: number of categorical latents in z_t
     :param stoch_classes: classes per categorical latent
     :param hidden: width of the prior/posterior/input layers

@@ -24,11 +24,14 @@ from sb3_hieros.agent.world_model import (
 from sb3_hieros.config import WorldModelConfig
 from sb3_hieros.spaces import check_observation_space
 
-KINDS = ("s5", "rssm")
+# "s5-gru": S5WM with deter_from="gru" (h_t from a GRU cell on the stack output, part of the recurrent memory)
+KINDS = ("s5", "rssm", "s5-gru")
 TINY = TINY_WORLD_MODEL
 
 
 def tiny_config(kind: str, **changes) -> WorldModelConfig:
+    if kind == "s5-gru":
+        kind, changes = "s5", {"deter_from": "gru", **changes}
     return WorldModelConfig(kind=kind, **{**TINY, **changes})
 
 
@@ -58,8 +61,8 @@ def assert_states_close(a: LatentState, b: LatentState, atol: float = 1e-5) -> N
 @pytest.mark.parametrize("kind", KINDS)
 def test_factory_selects_kind(kind):
     model = vector_model(kind)
-    assert isinstance(model, S5WorldModel if kind == "s5" else RSSMWorldModel)
-    assert model.kind == kind
+    assert isinstance(model, RSSMWorldModel if kind == "rssm" else S5WorldModel)
+    assert model.kind == kind.split("-")[0]
     assert model.feat_dim == TINY["deter_dim"] + TINY["stoch_groups"] * TINY["stoch_classes"]
 
 
@@ -218,10 +221,15 @@ def test_imagination_gradients_flow_through_recurrent_state(kind):
 
     # the RSSM's recurrent memory is its deterministic state (seq and deter are one tensor)
     start = start._replace(seq=seq0, deter=seq0) if kind == "rssm" else start._replace(seq=seq0)
+    deter0 = start.deter.clone().requires_grad_(True)
+    if kind == "s5-gru":  # its deterministic state is memory besides the S5 states
+        start = start._replace(deter=deter0)
     states, _, _ = model.imagine(start, policy, 5, keep_seq=True)
     states.deter[-1].sum().backward()
     # memory of the sequence model is not detached between steps
     assert seq0.grad is not None and seq0.grad.abs().sum() > 0
+    if kind == "s5-gru":
+        assert deter0.grad is not None and deter0.grad.abs().sum() > 0
     # dynamics backpropagation reaches the first action through five steps
     assert first_action.grad is not None and first_action.grad.abs().sum() > 0
 
@@ -253,6 +261,9 @@ def test_gradients_reach_all_parts(kind):
     }
     if kind == "s5":
         parts.update(sequence_model=model.sequence_model, post_net=model.post_net, deter_out=model.deter_out)
+    if kind == "s5-gru":
+        parts.update(sequence_model=model.sequence_model, post_net=model.post_net, deter_cell=model.deter_cell)
+    if kind != "rssm":
         ssm = list(model.sequence_model.ssm_parameters())
         assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in ssm)
     else:
@@ -399,7 +410,7 @@ def test_optimizer_groups(kind):
     assert decay["weight_decay"] == 0.1 and no_decay["weight_decay"] == 0.0
     assert len(decay["params"]) + len(no_decay["params"]) == len(list(model.parameters()))
     no_decay_ids = {id(p) for p in no_decay["params"]}
-    if kind == "s5":
+    if kind != "rssm":
         assert all(id(p) in no_decay_ids for p in model.sequence_model.ssm_parameters())
     assert all(p.dim() >= 2 for p in decay["params"])
     scheduler = world_model_lr_scheduler(optimizer, warmup=4)

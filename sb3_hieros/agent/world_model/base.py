@@ -212,12 +212,15 @@ class WorldModel(nn.Module):
 
     #: whether ``deter`` is the recurrent memory itself (RSSM), so :meth:`unpack_context` restores it from ``seq``
     _deter_is_seq = False
+    #: whether ``deter`` is recurrent memory besides ``seq`` (S5WM with ``deter_from="gru"``), packed after it
+    _deter_in_context = False
 
     @property
     def context_dim(self) -> int:
         """Floats per step in :meth:`pack_context`: z_t plus the sequence model's memory (complex parts as pairs)."""
         seq = self.initial_state(1).seq
-        return self.stoch_dim + seq[0].numel() * (2 if seq.is_complex() else 1)
+        deter = self.deter_dim if self._deter_in_context else 0
+        return self.stoch_dim + seq[0].numel() * (2 if seq.is_complex() else 1) + deter
 
     def pack_context(self, state: LatentState) -> th.Tensor:
         """What :meth:`observe` needs to continue after ``state`` (z_t and the recurrent memory) as one float vector
@@ -229,13 +232,17 @@ class WorldModel(nn.Module):
         """
         lead = tuple(state.batch_shape)
         seq = th.view_as_real(state.seq) if state.seq.is_complex() else state.seq
-        return th.cat([state.stoch.detach().float(), seq.detach().reshape(*lead, -1).float()], -1)
+        parts = [state.stoch.detach().float(), seq.detach().reshape(*lead, -1).float()]
+        if self._deter_in_context:
+            parts.append(state.deter.detach().float())
+        return th.cat(parts, -1)
 
     def unpack_context(self, context: th.Tensor) -> LatentState:
         """The state a :meth:`pack_context` vector stands for, as the ``state`` argument of :meth:`observe`.
 
         Only z_t and the recurrent memory are restored (all that :meth:`observe` reads); for S5WM ``deter`` is left
-        at zero and the logits uniform. All-zero vectors give :meth:`initial_state`.
+        at zero (except with ``deter_from="gru"``, where it is memory) and the logits uniform. All-zero vectors give
+        :meth:`initial_state`.
 
         :param context: (B, :attr:`context_dim`)
         :return: state of batch shape (B,)
@@ -246,11 +253,15 @@ class WorldModel(nn.Module):
         template = self.initial_state(int(context.shape[0]))
         context = context.to(template.stoch.device, th.float32)
         stoch, rest = context[:, : self.stoch_dim], context[:, self.stoch_dim :]
+        deter = template.deter
+        if self._deter_in_context:
+            rest, deter = rest[:, : -self.deter_dim], rest[:, -self.deter_dim :]
         if template.seq.is_complex():
             seq = th.view_as_complex(rest.reshape(*template.seq.shape, 2).contiguous())
         else:
             seq = rest.reshape(template.seq.shape)
-        deter = seq if self._deter_is_seq else template.deter
+        if self._deter_is_seq:
+            deter = seq
         return template._replace(stoch=stoch, deter=deter, seq=seq)
 
     def observe(

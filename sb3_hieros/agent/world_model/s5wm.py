@@ -9,10 +9,10 @@ from torch import nn
 
 from sb3_hieros.agent.world_model.base import ObsDict, WorldModel
 from sb3_hieros.agent.world_model.latent import LatentState
-from sb3_hieros.agent.world_model.layers import InputLayer
+from sb3_hieros.agent.world_model.layers import InputLayer, LayerNormGRUCell
 from sb3_hieros.config import WorldModelConfig
 from sb3_hieros.nn.distributions import symlog
-from sb3_hieros.nn.networks import MLP, trunc_normal_init_
+from sb3_hieros.nn.networks import MLP, trunc_normal_init_, without_autocast
 from sb3_hieros.nn.s5 import S5Stack, compile_s5
 
 __all__ = ["S5WorldModel"]
@@ -21,6 +21,11 @@ __all__ = ["S5WorldModel"]
 class S5WorldModel(WorldModel):
     """S5WM (thesis 4.4): posterior from the observation alone, a stack of resettable S5 blocks as sequence model,
     ``h_t`` read out of the internal S5 states (thesis 5.3.5) and the prior from the stack output ``m_t``.
+
+    With ``config.deter_from == "gru"`` (not in the thesis), ``h_t = GRU(h_{t-1}, m_t)``: DreamerV3's GRU cell on the
+    stack output keeps a non-linear recurrent state, and the prior reads ``h_t``, as RSSM's does. The S5 stack still
+    runs as a parallel scan in training; the cell runs as a loop over the chunk (as RSSM's), and ``h_t`` is part of
+    the replay context.
 
     :param observation_space: observation space of this level
     :param action_dim: size of the action vector
@@ -36,10 +41,15 @@ class S5WorldModel(WorldModel):
         c = config
         self.inp = InputLayer(self.stoch_dim, self.action_dim, c.s5_model_dim)
         self.sequence_model = S5Stack(c.s5_layers, c.s5_model_dim, c.s5_state_dim, c.s5_hippo_blocks, c.dropout)
-        readout_in = 2 * c.s5_layers * c.s5_state_dim if c.deter_from == "state" else c.s5_model_dim
-        self.deter_out = nn.Linear(readout_in, self.deter_dim)
-        trunc_normal_init_(self.deter_out)
-        self.prior_net = MLP(c.s5_model_dim, self.stoch_dim, c.hidden, layers=1)
+        self._deter_in_context = c.deter_from == "gru"
+        if self._deter_in_context:
+            self.deter_cell = LayerNormGRUCell(c.s5_model_dim, self.deter_dim)
+        else:
+            readout_in = 2 * c.s5_layers * c.s5_state_dim if c.deter_from == "state" else c.s5_model_dim
+            self.deter_out = nn.Linear(readout_in, self.deter_dim)
+            trunc_normal_init_(self.deter_out)
+        prior_in = self.deter_dim if self._deter_in_context else c.s5_model_dim
+        self.prior_net = MLP(prior_in, self.stoch_dim, c.hidden, layers=1)
         self.post_net = MLP(self.embed_dim, self.stoch_dim, c.hidden, layers=1)
         if compile:
             # the S5 module's own opt-in: real-split parallel scan under torch.compile; the step form stays eager
@@ -77,6 +87,21 @@ class S5WorldModel(WorldModel):
         source = th.view_as_real(seq).flatten(-3) if self.config.deter_from == "state" else out
         return symlog(self.deter_out(source).float())
 
+    def _gru_deterministic_states(self, out: th.Tensor, keep: th.Tensor, deter: th.Tensor) -> th.Tensor:
+        """h_t = GRU(h_{t-1}, m_t) over a chunk (``deter_from="gru"``), in float32 like RSSM's loop.
+
+        :param out: (B, T, H) stack outputs m_t
+        :param keep: (B, T, 1) 0 where an episode starts (h_{t-1} is dropped there)
+        :param deter: (B, D) h before the first step
+        :return: (B, T, D)
+        """
+        deters = []
+        with without_autocast(out.device.type):
+            for m_t, k_t in zip(out.float().unbind(1), keep.float().unbind(1), strict=True):
+                deter = self.deter_cell(m_t, deter * k_t)
+                deters.append(deter)
+        return th.stack(deters, 1)
+
     def _observe(
         self, obs: ObsDict, actions: th.Tensor, is_first: th.Tensor, state: LatentState | None, deterministic: bool
     ) -> tuple[LatentState, th.Tensor]:
@@ -89,8 +114,13 @@ class S5WorldModel(WorldModel):
         keep = (~is_first).unsqueeze(-1).to(stoch.dtype)  # (B, T, 1)
         u = self.inp(prev_stoch * keep, actions * keep)  # (B, T, H)
         out, seq = self.sequence_model._forward(u.float(), is_first, None if state is None else state.seq)
-        deter = self._deterministic_state(seq, out)  # (B, T, D)
-        prior_raw = self.prior_net(out)
+        if self._deter_in_context:
+            start = th.zeros(batch, self.deter_dim, device=out.device) if state is None else state.deter
+            deter = self._gru_deterministic_states(out, keep, start)  # (B, T, D)
+            prior_raw = self.prior_net(deter)
+        else:
+            deter = self._deterministic_state(seq, out)  # (B, T, D)
+            prior_raw = self.prior_net(out)
         prior_logits = self._normalise(prior_raw)
         return LatentState(stoch, deter, seq, post_logits, prior_logits), prior_logits
 
@@ -98,15 +128,16 @@ class S5WorldModel(WorldModel):
         self, state: LatentState, action: th.Tensor, reset: th.Tensor | None
     ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         """(m_t, h_t) = f(h_{t-1}, z_{t-1}, a_{t-1}) in step form; returns deter, S5 states and raw prior logits."""
-        stoch = state.stoch
+        stoch, deter = state.stoch, state.deter
         if reset is not None:
             keep = (~reset).unsqueeze(-1).to(stoch.dtype)
-            stoch, action = stoch * keep, action * keep
+            stoch, action, deter = stoch * keep, action * keep, deter * keep
         u = self.inp(stoch, action)
         out, seq = self.sequence_model._step(u, state.seq, reset)
-        deter = self._deterministic_state(seq, out)
-        prior_raw = self.prior_net(out)
-        return deter, seq, prior_raw
+        if self._deter_in_context:
+            deter = self.deter_cell(out, deter)
+            return deter, seq, self.prior_net(deter)
+        return self._deterministic_state(seq, out), seq, self.prior_net(out)
 
     def _obs_step(
         self, state: LatentState, obs: ObsDict, action: th.Tensor, is_first: th.Tensor, deterministic: bool
