@@ -27,6 +27,15 @@ over the repetitions and the speed-ups (ref time / our time, our steps/s / ref s
 ``--policy-kwargs`` and ``--ref-policy-kwargs`` (JSON) set the models' ``policy_kwargs`` of each side, e.g.
 ``--ref HEAD --policy-kwargs '{"bf16": true}' --ref-policy-kwargs '{"bf16": false}'`` times bf16 losses against
 float32 in the same code (the default, ``"auto"``, is bf16 on CPUs with native bf16 and float32 elsewhere).
+
+``python -m benchmarks.speed profile`` asks where the time of one update and of one ``predict`` goes, with
+``torch.profiler``: a small-preset ``MlpPolicy`` model on CartPole-v1 learns past ``learning_starts``, then
+``--updates`` level-0 updates (``Subactor.train_step`` on replay batches, as ``learn`` runs them) and
+``--predict-calls`` deterministic ``predict`` calls are timed, then profiled. For each it prints the wall time, the
+aten operator calls, the share of the operators' time spent in matrix products (``mm``, ``addmm``, ``bmm``,
+``baddbmm``) and the rate they reached (floating-point operations from their shapes), and the bound that follows: the
+time if everything but the matrix products took no time at all, i.e. the largest speed-up that removing overhead alone
+(fusion, compilation, fewer operators) could give at this preset on this CPU.
 """
 
 from __future__ import annotations
@@ -547,6 +556,147 @@ def run_compare(args: argparse.Namespace) -> None:
     print(compare_table(samples))
 
 
+#: matrix-product operators and their floating-point operations from the profiler's input shapes
+MATMUL_OPERATORS = ("aten::mm", "aten::addmm", "aten::bmm", "aten::baddbmm")
+
+
+def matmul_flops(name: str, shapes: Sequence[Sequence[int]]) -> int:
+    """Floating-point operations (2 per multiply-add) of one call of a matrix-product operator.
+
+    :param name: one of :data:`MATMUL_OPERATORS`
+    :param shapes: the call's input shapes as the profiler records them (``addmm``/``baddbmm``: the added tensor first)
+    :return: ``2 * M * K * N`` (times the batch for ``bmm``/``baddbmm``)
+    """
+    if name not in MATMUL_OPERATORS:
+        raise ValueError(f"not a matrix-product operator: {name!r}, expected one of {MATMUL_OPERATORS}")
+    left, right = (shapes[0], shapes[1]) if name in ("aten::mm", "aten::bmm") else (shapes[1], shapes[2])
+    if len(left) != len(right) or len(left) not in (2, 3) or left[-1] != right[-2]:
+        raise ValueError(f"{name} with input shapes {list(shapes)}: not a (batched) matrix product")
+    batch = left[0] if len(left) == 3 else 1
+    return 2 * batch * left[-2] * left[-1] * right[-1]
+
+
+def operator_summary(events: Any, wall_seconds: float, calls: int) -> dict[str, float]:
+    """What a profile of ``calls`` repetitions of one thing says about it.
+
+    :param events: ``prof.key_averages(group_by_input_shape=True)`` of a ``torch.profiler`` run with ``record_shapes``
+    :param wall_seconds: wall time of the same repetitions without the profiler (which slows every operator call)
+    :param calls: number of repetitions
+    :return: per call ``wall_ms``, ``operator_ms`` (operators' self time under the profiler), ``aten_calls`` and
+        ``matmul_ms``; ``matmul_share`` (of the operators' time), ``matmul_gflops`` (rate of the matrix products) and
+        ``overhead_free_speedup`` (wall time / matrix-product time)
+    """
+    op_us = matmul_us = flops = 0.0
+    aten_calls = 0
+    for event in events:
+        if not event.key.startswith("aten::"):
+            continue
+        aten_calls += event.count
+        op_us += event.self_cpu_time_total
+        if event.key in MATMUL_OPERATORS and event.input_shapes:
+            matmul_us += event.self_cpu_time_total
+            flops += event.count * matmul_flops(event.key, event.input_shapes)
+    wall_ms = 1000.0 * wall_seconds / calls
+    matmul_ms = matmul_us / 1000.0 / calls
+    return {
+        "wall_ms": wall_ms,
+        "operator_ms": op_us / 1000.0 / calls,
+        "aten_calls": aten_calls / calls,
+        "matmul_ms": matmul_ms,
+        "matmul_share": matmul_us / op_us if op_us else 0.0,
+        "matmul_gflops": flops / (matmul_us * 1e3) if matmul_us else 0.0,
+        "overhead_free_speedup": wall_ms / matmul_ms if matmul_ms else float("inf"),
+    }
+
+
+def profile_parts(
+    steps: int, learning_starts: int, updates: int, predict_calls: int, seed: int, policy_kwargs: dict[str, Any]
+) -> dict[str, dict[str, float]]:
+    """Profiles of level-0 updates and of ``predict`` for a small-preset model on CartPole-v1 (see the module doc).
+
+    :param steps: env steps the model learns first (must pass ``learning_starts``)
+    :param learning_starts: random steps before training
+    :param updates: profiled level-0 updates
+    :param predict_calls: profiled predict calls
+    :param seed: seed of the model
+    :param policy_kwargs: the model's ``policy_kwargs``
+    :return: ``"update"`` and ``"predict"`` -> :func:`operator_summary`
+    """
+    import gymnasium as gym
+    import numpy as np
+    from torch.profiler import ProfilerActivity, profile
+
+    from sb3_hieros import HIEROS
+
+    if steps <= learning_starts:
+        raise ValueError(f"steps ({steps}) must exceed learning_starts ({learning_starts}) so that replay can sample")
+    model = HIEROS(
+        "MlpPolicy",
+        "CartPole-v1",
+        preset="small",
+        seed=seed,
+        learning_starts=learning_starts,
+        policy_kwargs=policy_kwargs,
+    )
+    model.learn(steps)
+    level, replay = model.policy.hierarchy.levels[0], model.level_buffers()[0]
+    batches = [replay.sample(model.config.batch_size) for _ in range(updates + 1)]
+    model.policy.set_training_mode(True)
+    level.train_step(batches[0])  # untimed: first-call allocations
+    start = time.perf_counter()
+    for batch in batches[1:]:
+        level.train_step(batch)
+    wall = time.perf_counter() - start
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+        for batch in batches[1:]:
+            level.train_step(batch)
+    results = {"update": operator_summary(prof.key_averages(group_by_input_shape=True), wall, updates)}
+    model.policy.set_training_mode(False)
+    env = gym.make("CartPole-v1")
+    obs, _ = env.reset(seed=seed)
+    state, first = None, np.array([True])
+
+    def act() -> None:
+        nonlocal obs, state, first
+        action, state = model.predict(obs, state, first, deterministic=True)
+        obs, _, terminated, truncated, _ = env.step(int(action))
+        first = np.array([terminated or truncated])
+        if terminated or truncated:
+            obs, _ = env.reset()
+
+    for _ in range(20):
+        act()
+    start = time.perf_counter()
+    for _ in range(predict_calls):
+        act()
+    wall = time.perf_counter() - start
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+        for _ in range(predict_calls):
+            act()
+    results["predict"] = operator_summary(prof.key_averages(group_by_input_shape=True), wall, predict_calls)
+    return results
+
+
+def run_profile(args: argparse.Namespace) -> None:
+    """``profile`` subcommand: where an update's and a predict call's time goes; prints the figures last."""
+    for name in ("updates", "predict_calls"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    print(environment_header())
+    print(
+        f"CartPole-v1, small preset, learn({args.steps}) with learning_starts {args.learning_starts}, then "
+        f"{args.updates} level-0 updates and {args.predict_calls} predict calls under torch.profiler; "
+        f"{torch.get_num_threads()} torch thread(s); policy_kwargs {args.policy_kwargs}; wall times without the "
+        "profiler, operator times with it (it slows every call)"
+    )
+    results = profile_parts(
+        args.steps, args.learning_starts, args.updates, args.predict_calls, args.seed, args.policy_kwargs
+    )
+    for part, figures in results.items():
+        for key, value in figures.items():
+            print(f"{part}/{key}: {value:.3f}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Argument parser with one subcommand per benchmark table."""
     parser = argparse.ArgumentParser(prog="python -m benchmarks.speed", description=__doc__.split("\n")[0])
@@ -615,6 +765,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--ref-policy-kwargs", type=json.loads, default={}, help="policy_kwargs of the ref's models, JSON"
     )
     compare.set_defaults(func=run_compare)
+
+    prof = sub.add_parser("profile", help="where one update's and one predict call's time goes (torch.profiler)")
+    prof.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    prof.add_argument("--steps", type=int, default=700, help="env steps learned first (default 700)")
+    prof.add_argument("--learning-starts", type=int, default=500, help="random steps before training (default 500)")
+    prof.add_argument("--updates", type=int, default=20, help="profiled level-0 updates (default 20)")
+    prof.add_argument("--predict-calls", type=int, default=300, help="profiled predict calls (default 300)")
+    prof.add_argument("--seed", type=int, default=0)
+    prof.add_argument("--policy-kwargs", type=json.loads, default={}, help="the model's policy_kwargs, JSON")
+    prof.set_defaults(func=run_profile)
     return parser
 
 

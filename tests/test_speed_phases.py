@@ -3,13 +3,21 @@
 from __future__ import annotations
 
 import time
+from types import SimpleNamespace
 
 import pytest
 import torch as th
 from hieros_helpers import tiny_kwargs
 
 from benchmarks._timing import Timing
-from benchmarks.speed import PhaseClock, agent_phase_table, world_model_speedup_needed
+from benchmarks.speed import (
+    PhaseClock,
+    agent_phase_table,
+    matmul_flops,
+    operator_summary,
+    profile_parts,
+    world_model_speedup_needed,
+)
 from sb3_hieros import HIEROS
 
 
@@ -114,3 +122,44 @@ def test_s5_table_runs_on_tiny_sizes_and_prints_every_ratio(capsys):
     for name in ("s5_vs_grucell_T8", "scan_vs_reference_scan_T8", "scan_vs_autograd_backward_T8"):
         assert f"{name}: " in main_out
     assert "scan (ours, autograd bwd)" in main_out
+
+
+def test_matmul_flops_from_profiler_shapes():
+    assert matmul_flops("aten::mm", [[4, 3], [3, 5]]) == 2 * 4 * 3 * 5
+    assert matmul_flops("aten::addmm", [[5], [4, 3], [3, 5], [], []]) == 2 * 4 * 3 * 5
+    assert matmul_flops("aten::bmm", [[2, 4, 3], [2, 3, 5]]) == 2 * 2 * 4 * 3 * 5
+    with pytest.raises(ValueError, match="aten::add"):
+        matmul_flops("aten::add", [[4, 3], [4, 3]])
+    with pytest.raises(ValueError, match="not a"):
+        matmul_flops("aten::mm", [[4, 3], [2, 5]])
+
+
+def test_operator_summary_counts_matrix_products_against_all_operators():
+    def event(key, count, self_us, shapes):
+        return SimpleNamespace(key=key, count=count, self_cpu_time_total=self_us, input_shapes=shapes)
+
+    events = [
+        event("aten::mm", 2, 300.0, [[100, 100], [100, 100]]),  # 2 calls x 2e6 flops in 300 us
+        event("aten::add", 10, 600.0, [[100, 100], [100, 100], []]),
+        event("ProfilerStep", 1, 50.0, []),  # not an aten operator
+    ]
+    summary = operator_summary(events, wall_seconds=0.004, calls=2)
+    assert summary["wall_ms"] == pytest.approx(2.0)
+    assert summary["aten_calls"] == pytest.approx(6.0)
+    assert summary["operator_ms"] == pytest.approx(0.45)
+    assert summary["matmul_ms"] == pytest.approx(0.15)
+    assert summary["matmul_share"] == pytest.approx(1 / 3)
+    assert summary["matmul_gflops"] == pytest.approx(4e6 / 300e-6 / 1e9)
+    assert summary["overhead_free_speedup"] == pytest.approx(2.0 / 0.15)
+
+
+def test_profile_parts_on_a_short_run():
+    results = profile_parts(
+        steps=40, learning_starts=20, updates=1, predict_calls=3, seed=0, policy_kwargs={"bf16": False}
+    )
+    assert set(results) == {"update", "predict"}
+    for figures in results.values():
+        assert figures["aten_calls"] > 10 and figures["wall_ms"] > 0
+        assert 0.0 < figures["matmul_share"] < 1.0 and figures["matmul_gflops"] > 0
+    with pytest.raises(ValueError, match="must exceed learning_starts"):
+        profile_parts(steps=20, learning_starts=20, updates=1, predict_calls=1, seed=0, policy_kwargs={})
