@@ -8,6 +8,7 @@ from sb3_hieros.nn.distributions import (
     ContinueBernoulli,
     OneHotCategoricalST,
     TwoHotSymlog,
+    bins_are_antisymmetric,
     categorical_kl,
     sample_categorical_index,
     symexp,
@@ -190,3 +191,17 @@ def test_bad_inputs():
         BoundedNormal(th.zeros(2, 3), th.zeros(2, 2))
     with pytest.raises(ValueError, match="must match"):
         symlog_mse(th.zeros(2, 3), th.zeros(3, 2))
+
+
+def test_given_bin_symmetry_reads_out_as_the_checked_one():
+    bins = symlog_bins(255)
+    assert bins_are_antisymmetric(bins)
+    assert not bins_are_antisymmetric(th.linspace(-1.0, 2.0, 255))
+    assert not bins_are_antisymmetric(th.linspace(-1.0, 1.0, 254))
+    logits = th.randn(6, 255)
+    checked = TwoHotSymlog(logits, bins).mean
+    assert th.equal(TwoHotSymlog(logits, bins, antisymmetric=True).mean, checked)
+    assert th.equal(TwoHotSymlog(th.zeros(2, 255), bins, antisymmetric=True).mean, th.zeros(2))
+    # the plain sum for bins that are not antisymmetric
+    skewed = th.linspace(-1.0, 2.0, 255)
+    assert th.allclose(TwoHotSymlog(logits, skewed, antisymmetric=False).mean, TwoHotSymlog(logits, skewed).mean)

@@ -26,7 +26,14 @@ from torch import nn
 from torch.func import functional_call
 
 from sb3_hieros.agent.returns import ReturnNormalizer, cumulative_discount, lambda_returns
-from sb3_hieros.nn.distributions import BoundedNormal, OneHotCategoricalST, TwoHotSymlog, symlog, symlog_bins
+from sb3_hieros.nn.distributions import (
+    BoundedNormal,
+    OneHotCategoricalST,
+    TwoHotSymlog,
+    bins_are_antisymmetric,
+    symlog,
+    symlog_bins,
+)
 from sb3_hieros.nn.networks import MLP
 
 #: Names of the reward terms, in the order of eq. 4.3.
@@ -231,12 +238,13 @@ class Critic(nn.Module):
         self.slow_net = copy.deepcopy(self.net).requires_grad_(False)
         # constant: non-persistent so that it stays out of the state_dict (SB3 save/load contract)
         self.register_buffer("bins", symlog_bins(VALUE_BINS), persistent=False)
+        self.bins_antisymmetric = bins_are_antisymmetric(self.bins)
 
     def forward(self, feat: th.Tensor) -> TwoHotSymlog:
         """:param feat: (*B, feat_dim)
         :return: value distribution with batch shape *B
         """
-        return TwoHotSymlog(self.net(feat), self.bins)
+        return TwoHotSymlog(self.net(feat), self.bins, self.bins_antisymmetric)
 
     def value(self, feat: th.Tensor, detach_params: bool = False) -> th.Tensor:
         """Expected value (raw units) of the fast critic.
@@ -249,7 +257,7 @@ class Critic(nn.Module):
         if not detach_params:
             return self(feat).mean
         params = {name: p.detach() for name, p in self.net.named_parameters()}
-        return TwoHotSymlog(functional_call(self.net, params, (feat,)), self.bins).mean
+        return TwoHotSymlog(functional_call(self.net, params, (feat,)), self.bins, self.bins_antisymmetric).mean
 
     @th.no_grad()
     def slow_value(self, feat: th.Tensor) -> th.Tensor:
@@ -258,7 +266,7 @@ class Critic(nn.Module):
         :param feat: (*B, feat_dim)
         :return: (*B)
         """
-        return TwoHotSymlog(self.slow_net(feat), self.bins).mean
+        return TwoHotSymlog(self.slow_net(feat), self.bins, self.bins_antisymmetric).mean
 
     @th.no_grad()
     def update_slow(self, fraction: float | None = None) -> None:
@@ -546,7 +554,7 @@ class ActorCritic(nn.Module):
                 # one forward pass of the fast critic serves the returns (detached) and its own loss (s_0..s_{H-1})
                 dist_all = critic(feats_sg)  # (H+1, *B)
                 values = dist_all.mean.detach()
-                fast = TwoHotSymlog(dist_all.logits[:-1], critic.bins)
+                fast = TwoHotSymlog(dist_all.logits[:-1], critic.bins, critic.bins_antisymmetric)
             returns = lambda_returns(
                 rewards[name][1:], values[:-1], continues[1:], values[-1], self.discount, self.lambda_
             )  # (H, *B)

@@ -105,16 +105,33 @@ def two_hot_encode(x: th.Tensor, bins: th.Tensor) -> th.Tensor:
     return out
 
 
-def _symmetric_expectation(probs: th.Tensor, bins: th.Tensor) -> th.Tensor:
+def bins_are_antisymmetric(bins: th.Tensor) -> bool:
+    """Whether ``bins[k] == -bins[K-1-k]`` for every k with an odd K (as :func:`symlog_bins` makes them).
+
+    Reads the values (a host synchronisation on a GPU): modules check their constant bins once and hand the answer to
+    :class:`TwoHotSymlog`.
+
+    :param bins: (K,) bin centres
+    :return: True for exactly antisymmetric bins around a centre bin of 0
+    """
+    num_bins = bins.numel()
+    mid = (num_bins - 1) // 2
+    return num_bins % 2 == 1 and th.equal(bins[mid + 1 :], -bins[:mid].flip(0))
+
+
+def _symmetric_expectation(probs: th.Tensor, bins: th.Tensor, antisymmetric: bool | None = None) -> th.Tensor:
     """``(probs * bins).sum(-1)`` as one matrix-vector product, exactly 0 for a symmetric ``probs``.
 
     For antisymmetric bins (``bins[k] == -bins[K-1-k]``, as :func:`symlog_bins` makes them) the sum is computed as
     ``(p_right - flip(p_left)) @ bins_right``, so the uniform output of a zero-initialised head decodes to exactly
     0, which a plain left-to-right sum does not guarantee in floating point. Other bins use ``probs @ bins``.
+
+    :param antisymmetric: :func:`bins_are_antisymmetric` of ``bins`` if known, or None to check it here
     """
-    num_bins = bins.numel()
-    mid = (num_bins - 1) // 2
-    if num_bins % 2 == 1 and th.equal(bins[mid + 1 :], -bins[:mid].flip(0)):
+    if antisymmetric is None:
+        antisymmetric = bins_are_antisymmetric(bins)
+    if antisymmetric:
+        mid = (bins.numel() - 1) // 2
         return (probs[..., mid + 1 :] - probs[..., :mid].flip(-1)) @ bins[mid + 1 :]
     return probs @ bins
 
@@ -128,9 +145,11 @@ class TwoHotSymlog:
     :param logits: (..., K) unnormalised log-probabilities over the bins (taken to float32, as in every distribution
         here, so that a bfloat16 network output is read out at full precision)
     :param bins: (K,) increasing bin centres in symlog space (:func:`symlog_bins`)
+    :param antisymmetric: :func:`bins_are_antisymmetric` of ``bins`` if known (modules with constant bins check them
+        once), or None to check it at each read-out
     """
 
-    def __init__(self, logits: th.Tensor, bins: th.Tensor) -> None:
+    def __init__(self, logits: th.Tensor, bins: th.Tensor, antisymmetric: bool | None = None) -> None:
         _check_bins(bins)
         if logits.shape[-1:] != bins.shape:
             raise ValueError(
@@ -138,6 +157,7 @@ class TwoHotSymlog:
             )
         self.logits = logits.float()
         self.bins = bins
+        self.antisymmetric = antisymmetric
 
     @property
     def probs(self) -> th.Tensor:
@@ -147,7 +167,7 @@ class TwoHotSymlog:
     @property
     def mean(self) -> th.Tensor:
         """(...) decoded expectation ``symexp(sum_k p_k * bin_k)``, in raw (not symlog) units."""
-        return symexp(_symmetric_expectation(self.probs, self.bins))
+        return symexp(_symmetric_expectation(self.probs, self.bins, self.antisymmetric))
 
     def mode(self) -> th.Tensor:
         """(...) same as :attr:`mean` (the DreamerV3 read-out)."""

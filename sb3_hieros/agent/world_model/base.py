@@ -47,7 +47,13 @@ from sb3_hieros.agent.world_model.observations import (
     make_observation_encoder,
 )
 from sb3_hieros.config import WorldModelConfig
-from sb3_hieros.nn.distributions import ContinueBernoulli, OneHotCategoricalST, TwoHotSymlog, symlog_bins
+from sb3_hieros.nn.distributions import (
+    ContinueBernoulli,
+    OneHotCategoricalST,
+    TwoHotSymlog,
+    bins_are_antisymmetric,
+    symlog_bins,
+)
 from sb3_hieros.nn.guard import step_if_finite
 from sb3_hieros.nn.metrics import metric_floats
 from sb3_hieros.nn.networks import MLP, bf16_autocast, check_bf16, evaluation_mode
@@ -121,6 +127,7 @@ class WorldModel(nn.Module):
         self.reward_head = MLP(self.feat_dim, REWARD_BINS, config.head_units, config.head_layers, out_scale=0.0)
         self.cont_head = MLP(self.feat_dim, 1, config.head_units, config.head_layers)
         self.register_buffer("reward_bins", symlog_bins(REWARD_BINS), persistent=False)
+        self.reward_bins_antisymmetric = bins_are_antisymmetric(self.reward_bins)
         if compile:
             # convolution stacks: Inductor fuses the per-pixel LayerNorm and SiLU around the oneDNN convolutions
             for conv in [*self.encoder.convs.values(), *self.decoder.convs.values()]:
@@ -370,7 +377,7 @@ class WorldModel(nn.Module):
         :param state: any state
         :return: distribution with batch shape of ``state``
         """
-        return TwoHotSymlog(self.reward_head(self.features(state)), self.reward_bins)
+        return TwoHotSymlog(self.reward_head(self.features(state)), self.reward_bins, self.reward_bins_antisymmetric)
 
     def cont_dist(self, state: LatentState) -> ContinueBernoulli:
         """p(c_t | h_t, z_t), c_t = 1 - is_terminal_t.
@@ -464,7 +471,9 @@ class WorldModel(nn.Module):
         reward_logits = self.reward_head(feat)
         cont_logits = self.cont_head(feat)
         obs_nll = self.decoder.nll(pred, obs, lead)
-        reward_nll = -TwoHotSymlog(reward_logits, self.reward_bins).log_prob(samples.rewards.float())
+        reward_nll = -TwoHotSymlog(reward_logits, self.reward_bins, self.reward_bins_antisymmetric).log_prob(
+            samples.rewards.float()
+        )
         cont_target = 1.0 - samples.is_terminal.float()
         cont_nll = -ContinueBernoulli(cont_logits.squeeze(-1)).log_prob(cont_target)
         post_probs = post.logits.exp()  # (B, T, G, K), one exp for both KL terms and the entropy metric
