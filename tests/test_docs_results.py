@@ -21,6 +21,27 @@ def test_cpu_suite_table_is_made_from_runs_jsonl(tmp_path):
     assert (tmp_path / "table.md").read_text() == (DOCS / "cpu_suite" / "table.md").read_text()
 
 
+#: The single-change suites next to the main one: folder under docs/cpu_suite -> arguments of their --report.
+CHANGE_SUITES = {
+    "bf16": [
+        "--tasks", "CartPole-v1", "cartpole-balance-proprio", "Pendulum-v1",
+        "--hieros-kwargs", '{"policy_kwargs": {"bf16": true}}',
+    ],
+    "deter_from_output": ["--tasks", "cartpole-balance-proprio", "CartPole-v1", "Pendulum-v1"],
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", sorted(CHANGE_SUITES))
+def test_change_suite_tables_are_made_from_their_runs(tmp_path, name):
+    from benchmarks import cpu_suite
+
+    folder = DOCS / "cpu_suite" / name
+    shutil.copy(folder / "runs.jsonl", tmp_path / "runs.jsonl")
+    args = [*CHANGE_SUITES[name], "--algos", "hieros", "--seeds", "3", "--steps", "10000", "--report"]
+    cpu_suite.main([*args, "--out", str(tmp_path)])
+    assert (tmp_path / "table.md").read_text() == (folder / "table.md").read_text()
+
+
 def test_sample_efficiency_table_is_made_from_results_json(tmp_path):
     from benchmarks import sample_efficiency
 
