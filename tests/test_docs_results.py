@@ -28,6 +28,10 @@ CHANGE_SUITES = {
         "--hieros-kwargs", '{"policy_kwargs": {"bf16": true}}',
     ],
     "deter_from_output": ["--tasks", "cartpole-balance-proprio", "CartPole-v1", "Pendulum-v1"],
+    "deter_from_gru": [
+        "--tasks", "cartpole-balance-proprio", "CartPole-v1", "Pendulum-v1",
+        "--hieros-kwargs", '{"config_overrides": {"world_model": {"deter_from": "gru"}}}',
+    ],
 }  # fmt: skip
 
 
