@@ -128,14 +128,14 @@ class S5WorldModel(WorldModel):
         self, state: LatentState, action: th.Tensor, reset: th.Tensor | None
     ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         """(m_t, h_t) = f(h_{t-1}, z_{t-1}, a_{t-1}) in step form; returns deter, S5 states and raw prior logits."""
-        stoch, deter = state.stoch, state.deter
+        stoch, keep = state.stoch, None
         if reset is not None:
             keep = (~reset).unsqueeze(-1).to(stoch.dtype)
-            stoch, action, deter = stoch * keep, action * keep, deter * keep
+            stoch, action = stoch * keep, action * keep
         u = self.inp(stoch, action)
         out, seq = self.sequence_model._step(u, state.seq, reset)
-        if self._deter_in_context:
-            deter = self.deter_cell(out, deter)
+        if self._deter_in_context:  # h_{t-1} is memory only here, so only here is it dropped at a reset
+            deter = self.deter_cell(out, state.deter if keep is None else state.deter * keep)
             return deter, seq, self.prior_net(deter)
         return self._deterministic_state(seq, out), seq, self.prior_net(out)
 
