@@ -42,6 +42,30 @@ def test_mlp_variants():
     assert th.allclose(sl(th.tensor([[1e6]])), th.log1p(th.tensor([[1e6]])))
 
 
+@pytest.mark.parametrize("norm", [True, False])
+def test_mlp_forward_is_its_registered_layers_after_copy_and_load(norm):
+    """MLP.forward calls its layers functionally; it must compute what its registered modules compute, also in a deep
+    copy and after loading another MLP's weights."""
+    import copy
+
+    def chained(mlp: MLP, x: th.Tensor) -> th.Tensor:
+        return mlp.out(mlp.hidden(x))
+
+    source = MLP(5, 3, hidden=8, layers=2, norm=norm, act=nn.ELU)
+    with th.no_grad():
+        for p in source.parameters():
+            p.normal_()
+    mlp = copy.deepcopy(MLP(5, 3, hidden=8, layers=2, norm=norm, act=nn.ELU))
+    mlp.load_state_dict(source.state_dict())
+    x = th.randn(4, 5)
+    assert th.equal(mlp(x), chained(mlp, x))
+    assert th.equal(mlp(x), source(x))
+    twin = copy.deepcopy(mlp)
+    with th.no_grad():
+        twin.hidden[0].weight.add_(1.0)
+    assert th.equal(twin(x), chained(twin, x)) and not th.equal(twin(x), mlp(x))
+
+
 def test_trunc_normal_init_statistics():
     layer = nn.Linear(400, 600)
     trunc_normal_init_(layer, scale=1.0)
