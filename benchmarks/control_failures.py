@@ -10,6 +10,13 @@ actions (the training behaviour), and reports per model:
   value of the deterministic action, the share of action entries at the bounds (``|a| > 0.95``), the policy's mean
   std and the mean distance between the deterministic action and a sample at the same state. Levels above: how
   often the subgoal changes when the level acts, and the entropy of its policy;
+* **state feedback** (level 0, Box actions and vector observations, deterministic episodes): the least-squares fit
+  of the deterministic action on the observation entries and a constant, ``a ~ K o + c``: the gain of every
+  (action entry, observation entry) pair in the observation's own units (for at most :data:`MAX_FEEDBACK_GAINS`
+  pairs), the constant, and the share of the action's variance the fit explains (R^2). A policy that reacts to the
+  state as a controller would has a high R^2 and gains on the entries that matter (on cartpole both the pole angle
+  and its angular velocity), a biased one a large constant; with the mean absolute value of every observation entry
+  over the episodes (where the state drifts to);
 * **world model** (level 0, on the held-out episodes): open-loop predictions over ``--horizon`` steps from the
   posterior state at every ``--stride``-th step with the actions the agent actually took: mean absolute reward error
   and the observation error relative to a repeat-the-last-observation baseline (vector observations);
@@ -68,12 +75,15 @@ __all__ = [
     "action_response_figures",
     "actor_objective_figures",
     "critic_figures",
+    "feedback_figures",
     "open_loop_figures",
     "play",
 ]
 
 #: An action entry counts as "at the bound" when its magnitude (in [-1, 1] units) exceeds this.
 AT_BOUND = 0.95
+#: :func:`feedback_figures` reports single gains only up to this many (action entry, observation entry) pairs.
+MAX_FEEDBACK_GAINS = 32
 
 
 @dataclass
@@ -184,6 +194,37 @@ def action_figures(model: HIEROS, episodes: Sequence[Episode]) -> dict[str, floa
                     acts += 1
                     changes += int(not th.equal(codes[t], codes[t - 1]))
         out[f"level{i}/subgoal_change_rate"] = changes / max(acts, 1)
+    return out
+
+
+def feedback_figures(model: HIEROS, episodes: Sequence[Episode]) -> dict[str, float]:
+    """How the level-0 deterministic action depends on the observation: the linear state-feedback fit ``a ~ K o + c``.
+
+    :param model: the agent that played ``episodes`` (Box actions and a flat vector observation, else no figures)
+    :param episodes: deterministic episodes played by :func:`play`
+    :return: ``level0/feedback_r2``, ``level0/feedback_bias_a{j}``, ``level0/feedback_gain_a{j}_obs{k}`` (for at most
+        :data:`MAX_FEEDBACK_GAINS` pairs) and ``state/abs_mean_obs{k}``
+    """
+    if not isinstance(model.action_space, spaces.Box) or not isinstance(model.observation_space, spaces.Box):
+        return {}
+    if len(model.observation_space.shape) != 1:
+        return {}
+    obs = np.concatenate([np.stack(e.observations) for e in episodes])  # (N, D)
+    mode = np.concatenate([np.stack(e.mode) for e in episodes])  # (N, A)
+    design = np.concatenate([obs, np.ones((len(obs), 1))], 1)  # (N, D + 1)
+    coef, *_ = np.linalg.lstsq(design, mode, rcond=None)  # (D + 1, A)
+    residual = ((mode - design @ coef) ** 2).sum()
+    spread = ((mode - mode.mean(0)) ** 2).sum()
+    varies = np.ptp(mode, axis=0).max() > 0  # a constant action has no variance to explain
+    out = {"level0/feedback_r2": float(1.0 - residual / spread) if varies else math.nan}
+    n_obs, n_act = obs.shape[1], mode.shape[1]
+    for j in range(n_act):
+        out[f"level0/feedback_bias_a{j}"] = float(coef[-1, j])
+        if n_obs * n_act <= MAX_FEEDBACK_GAINS:
+            for k in range(n_obs):
+                out[f"level0/feedback_gain_a{j}_obs{k}"] = float(coef[k, j])
+    for k in range(n_obs):
+        out[f"state/abs_mean_obs{k}"] = float(np.abs(obs[:, k]).mean())
     return out
 
 
@@ -469,6 +510,7 @@ def analyse(
         "return/sampled": float(np.mean([e.total for e in sampled])),
     }
     out.update(action_figures(model, greedy))
+    out.update(feedback_figures(model, greedy))
     out.update(open_loop_figures(model, greedy, horizon, stride))
     seeds = [seed + j for j in range(episodes)]
     out.update(action_response_figures(model, suite, task, seeds, greedy, response_steps, stride))

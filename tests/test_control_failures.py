@@ -59,6 +59,8 @@ def test_every_figure_of_both_models(pendulum_models, capsys):
         slopes = [k for k in figures if k.startswith("world_model/action_slope_obs")]
         assert len(slopes) == 3 and all(math.isfinite(figures[k]) for k in slopes)
         assert math.isfinite(figures["world_model/action_slope_reward"])
+        assert figures["level0/feedback_r2"] <= 1.0 and {f"state/abs_mean_obs{k}" for k in range(3)} <= set(figures)
+        assert {f"level0/feedback_gain_a0_obs{k}" for k in range(3)} <= set(figures)
     # the two-level model has a subgoal term at level 0 and a level above whose subgoals change or not
     assert "level0/grad_share/subgoal" in results["two"] and "level0/grad_share/subgoal" not in results["one"]
     assert 0.0 <= results["two"]["level1/subgoal_change_rate"] <= 1.0
@@ -76,6 +78,28 @@ def test_argument_checks(pendulum_models, tmp_path):
     same = [f"a={pendulum_models['one']}", f"a={pendulum_models['two']}"]
     with pytest.raises(ValueError, match="distinct"):
         control_failures.main([*same, "--suite", "classic", "--task", "Pendulum-v1"])
+
+
+def test_feedback_fit_recovers_a_linear_controller():
+    model = HIEROS("MlpPolicy", "Pendulum-v1", **tiny_kwargs(n_levels=1))
+    rng = np.random.default_rng(0)
+    gains, bias = np.array([0.5, -1.0, 0.25]), 0.1
+    episodes = []
+    for _ in range(2):
+        episode = control_failures.Episode()
+        for _ in range(30):
+            obs = rng.normal(size=3)
+            episode.observations.append(obs)
+            episode.mode.append(np.array([gains @ obs + bias]))
+        episodes.append(episode)
+    figures = control_failures.feedback_figures(model, episodes)
+    assert figures["level0/feedback_r2"] == pytest.approx(1.0)
+    assert figures["level0/feedback_bias_a0"] == pytest.approx(bias)
+    assert [figures[f"level0/feedback_gain_a0_obs{k}"] for k in range(3)] == pytest.approx(list(gains))
+    constant = deepcopy(episodes)
+    for episode in constant:
+        episode.mode = [np.array([0.3])] * len(episode.mode)  # a policy that ignores the state
+    assert math.isnan(control_failures.feedback_figures(model, constant)["level0/feedback_r2"])
 
 
 def test_action_slope():
