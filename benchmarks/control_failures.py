@@ -32,7 +32,9 @@ actions (the training behaviour), and reports per model:
 * **actor objective** (every level, from the posterior states of the sampled episodes, imagined as training does):
   per reward term the spread of its normalised advantage and the gradient norm it puts on the actor's parameters,
   and the share of each term (and of the entropy bonus) in the sum of those norms. For a level trained by dynamics
-  backpropagation also the norm of the gradient that reaches each imagined action, per imagined step;
+  backpropagation also the norm of the gradient that reaches each imagined action, per imagined step, and at level 0
+  the correlation of the first imagined action's ascent direction with each observation entry at the start state
+  (the state feedback the objective asks for; Box actions, vector observations);
 * for a model with an ``evaluations.npz`` or ``result.json`` beside it, nothing more: train with
   :mod:`benchmarks.train` or :mod:`benchmarks.cpu_suite` and point this script at the saved models.
 
@@ -74,6 +76,7 @@ __all__ = [
     "action_figures",
     "action_response_figures",
     "actor_objective_figures",
+    "ascent_figures",
     "critic_figures",
     "feedback_figures",
     "open_loop_figures",
@@ -413,6 +416,41 @@ def _grad_norm(loss: th.Tensor, params: Sequence[th.Tensor]) -> float:
     return math.sqrt(sum(float((g.float() ** 2).sum()) for g in grads if g is not None))
 
 
+def ascent_figures(
+    model: HIEROS, episodes: Sequence[Episode], chosen: th.Tensor, ascent: th.Tensor
+) -> dict[str, float]:
+    """Which way the imagined objective pulls the first action, against the observation at its start state.
+
+    ``ascent`` is minus the actor loss's gradient on the first imagined action of each rollout: the direction in
+    which the world model and the critics say the action should move. Its correlation with each observation entry
+    (over the start states) is the state feedback the objective asks for, to be read beside the feedback the policy
+    has (``level0/feedback_gain_*``): a correlation the policy's gains do not show is a change the actor is asked to
+    make and has not made.
+
+    :param model: the agent (Box actions and a flat vector observation, else no figures)
+    :param episodes: the episodes whose level-0 states started the rollouts, in the order the starts were stacked
+    :param chosen: (N,) indices of the start states used, into that stacking
+    :param ascent: (N, A) ascent directions of the first imagined action
+    :return: ``level0/ascent_corr_a{j}_obs{k}`` for at most :data:`MAX_FEEDBACK_GAINS` pairs
+    """
+    if not isinstance(model.action_space, spaces.Box) or not isinstance(model.observation_space, spaces.Box):
+        return {}
+    if len(model.observation_space.shape) != 1:
+        return {}
+    obs = np.concatenate([np.stack(e.observations) for e in episodes])[chosen.numpy()]  # (N, D)
+    pull = ascent.detach().float().reshape(ascent.shape[0], -1).numpy()  # (N, A)
+    if obs.shape[1] * pull.shape[1] > MAX_FEEDBACK_GAINS:
+        return {}
+    out = {}
+    for j in range(pull.shape[1]):
+        for k in range(obs.shape[1]):
+            varies = np.ptp(pull[:, j]) > 0 and np.ptp(obs[:, k]) > 0
+            out[f"level0/ascent_corr_a{j}_obs{k}"] = (
+                float(np.corrcoef(pull[:, j], obs[:, k])[0, 1]) if varies else math.nan
+            )
+    return out
+
+
 def actor_objective_figures(model: HIEROS, episodes: Sequence[Episode], max_starts: int = 512) -> dict[str, float]:
     """Per level, how much each reward term (and the entropy bonus) pulls on the actor (eq. 4.3, 4.9).
 
@@ -485,6 +523,8 @@ def actor_objective_figures(model: HIEROS, episodes: Sequence[Episode], max_star
                 per_step = [float(g.reshape(g.shape[0], -1).norm(dim=-1).mean()) for g in grads]
                 out[f"level{i}/action_grad_first"] = float(per_step[0])
                 out[f"level{i}/action_grad_last"] = float(per_step[-1])
+                if i == 0:
+                    out.update(ascent_figures(model, episodes, chosen, -grads[0]))
         policy.set_training_mode(False)
         norm_sum = sum(norms.values()) or 1.0
         for name, value in norms.items():

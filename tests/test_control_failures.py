@@ -61,6 +61,8 @@ def test_every_figure_of_both_models(pendulum_models, capsys):
         assert math.isfinite(figures["world_model/action_slope_reward"])
         assert figures["level0/feedback_r2"] <= 1.0 and {f"state/abs_mean_obs{k}" for k in range(3)} <= set(figures)
         assert {f"level0/feedback_gain_a0_obs{k}" for k in range(3)} <= set(figures)
+        ascent = [figures[f"level0/ascent_corr_a0_obs{k}"] for k in range(3)]
+        assert all(-1.0 <= c <= 1.0 for c in ascent if not math.isnan(c))
     # the two-level model has a subgoal term at level 0 and a level above whose subgoals change or not
     assert "level0/grad_share/subgoal" in results["two"] and "level0/grad_share/subgoal" not in results["one"]
     assert 0.0 <= results["two"]["level1/subgoal_change_rate"] <= 1.0
@@ -100,6 +102,18 @@ def test_feedback_fit_recovers_a_linear_controller():
     for episode in constant:
         episode.mode = [np.array([0.3])] * len(episode.mode)  # a policy that ignores the state
     assert math.isnan(control_failures.feedback_figures(model, constant)["level0/feedback_r2"])
+
+
+def test_ascent_correlations_follow_the_start_states():
+    model = HIEROS("MlpPolicy", "Pendulum-v1", **tiny_kwargs(n_levels=1))
+    rng = np.random.default_rng(1)
+    episodes = [control_failures.Episode(observations=list(rng.normal(size=(20, 3)))) for _ in range(2)]
+    chosen = th.tensor([3, 25, 7, 39, 0, 12, 30, 18])
+    stacked = np.concatenate([np.stack(e.observations) for e in episodes])[chosen.numpy()]
+    ascent = th.as_tensor(-2.0 * stacked[:, 1:2])  # pulls against the second entry of the start observation
+    figures = control_failures.ascent_figures(model, episodes, chosen, ascent)
+    assert figures["level0/ascent_corr_a0_obs1"] == pytest.approx(-1.0)
+    assert abs(figures["level0/ascent_corr_a0_obs0"]) < 1.0
 
 
 def test_action_slope():
