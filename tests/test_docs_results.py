@@ -29,7 +29,7 @@ CHANGE_SUITES = {
     ],
     "deter_from_output": ["--tasks", "cartpole-balance-proprio", "CartPole-v1", "Pendulum-v1"],
     "deter_from_gru": [
-        "--tasks", "cartpole-balance-proprio", "CartPole-v1", "Pendulum-v1",
+        "--tasks", "cartpole-balance-proprio", "cartpole-balance-pixels", "CartPole-v1", "Pendulum-v1",
         "--hieros-kwargs", '{"config_overrides": {"world_model": {"deter_from": "gru"}}}',
     ],
 }  # fmt: skip
