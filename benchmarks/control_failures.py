@@ -34,7 +34,10 @@ actions (the training behaviour), and reports per model:
   and the share of each term (and of the entropy bonus) in the sum of those norms. For a level trained by dynamics
   backpropagation also the norm of the gradient that reaches each imagined action, per imagined step, and at level 0
   the correlation of the first imagined action's ascent direction with each observation entry at the start state
-  (the state feedback the objective asks for; Box actions, vector observations);
+  (the state feedback the objective asks for; Box actions, vector observations); and whether that pull is sampling
+  noise or a consistent function of the state: each of 128 start states imagined 16 times, the per-sample
+  signal-to-noise ratio, the split-half reliability of the per-start mean and the share of it the observation
+  explains linearly;
 * for a model with an ``evaluations.npz`` or ``result.json`` beside it, nothing more: train with
   :mod:`benchmarks.train` or :mod:`benchmarks.cpu_suite` and point this script at the saved models.
 
@@ -81,6 +84,7 @@ __all__ = [
     "feedback_figures",
     "open_loop_figures",
     "play",
+    "pull_figures",
 ]
 
 #: An action entry counts as "at the bound" when its magnitude (in [-1, 1] units) exceeds this.
@@ -533,6 +537,62 @@ def actor_objective_figures(model: HIEROS, episodes: Sequence[Episode], max_star
     return out
 
 
+def pull_figures(model: HIEROS, episodes: Sequence[Episode], starts: int = 128, samples: int = 16) -> dict[str, float]:
+    """Is the imagined objective's pull on the first action noise, or a consistent function of the state?
+
+    ``starts`` level-0 posterior states of ``episodes`` are each imagined ``samples`` times as training does (dynamics
+    backpropagation), and the pull on the first imagined action (minus the actor loss's gradient on it, every reward
+    term) is taken per rollout. Reported for the first action entry: the per-sample signal-to-noise ratio
+    ``mean^2 / var`` over a start's samples (median over starts), the split-half reliability (correlation over starts
+    of the means of the two halves of the samples) and the share of the variance of the per-start mean that a linear
+    function of the observation explains (R^2). A reliable pull that the observation does not explain comes from
+    something other than the physical state (the latent's memory, the subgoal, model error).
+
+    :param model: the agent (Box actions, a flat vector observation and dynamics backpropagation at level 0, else no
+        figures)
+    :param episodes: episodes whose level-0 states start the rollouts
+    :param starts: start states (drawn without replacement)
+    :param samples: rollouts per start (>= 4)
+    :return: ``level0/pull_snr``, ``level0/pull_split_half``, ``level0/pull_obs_r2``
+    """
+    level = model.policy.hierarchy.levels[0]
+    if level.imag_gradient != "dynamics" or not isinstance(model.observation_space, spaces.Box):
+        return {}
+    if len(model.observation_space.shape) != 1 or samples < 4:
+        return {}
+    hierarchy, ac = model.policy.hierarchy, level.actor_critic
+    latents = [s for e in episodes for s in e.latents[0]]
+    chosen = th.randperm(len(latents), generator=th.Generator().manual_seed(0))[:starts]
+    repeated = chosen.repeat_interleave(samples)
+    start = stack_states(latents, 0).flatten_batch().select(repeated).detach()
+    codes = th.stack([c for e in episodes for c in e.codes[1]])[repeated] if hierarchy.n_levels > 1 else None
+    model.policy.set_training_mode(True)
+    with th.enable_grad(), _recorded_samples(ac.actor) as drawn:
+        imagined = level.imagine(start, codes)
+        rewards = level.imagined_rewards(imagined)
+        cont = imagined.continues
+        continues = th.cat([th.ones_like(cont[:1]), cont[1:].detach()], 0)
+        weight = cumulative_discount(continues, ac.discount)[:-1]
+        loss = th.zeros(())
+        for name, alpha in ac.reward_weights.items():
+            values = ac.critics[name].value(imagined.features, detach_params=True)
+            returns = lambda_returns(rewards[name][1:], values[:-1], continues[1:], values[-1], ac.discount, ac.lambda_)
+            loss = loss - (weight * alpha * (returns - values[:-1]) / ac.return_scale(name)).mean()
+        pull = -th.autograd.grad(loss, drawn[0])[0]
+    model.policy.set_training_mode(False)
+    pull_np = pull.detach().float().reshape(len(chosen), samples, -1)[..., 0].numpy()  # (starts, samples)
+    mean, var = pull_np.mean(1), pull_np.var(1, ddof=1)
+    half = samples // 2
+    obs = np.concatenate([np.stack(e.observations) for e in episodes])[chosen.numpy()]  # (starts, D)
+    design = np.concatenate([obs, np.ones((len(obs), 1))], 1)
+    coef, *_ = np.linalg.lstsq(design, mean, rcond=None)
+    return {
+        "level0/pull_snr": float(np.median(mean**2 / np.maximum(var, 1e-30))),
+        "level0/pull_split_half": float(np.corrcoef(pull_np[:, :half].mean(1), pull_np[:, half:].mean(1))[0, 1]),
+        "level0/pull_obs_r2": float(1.0 - ((mean - design @ coef) ** 2).mean() / mean.var()),
+    }
+
+
 def analyse(
     model: HIEROS, suite: str, task: str, episodes: int, seed: int, horizon: int, stride: int, response_steps: int
 ) -> dict[str, float]:
@@ -557,6 +617,7 @@ def analyse(
     out.update(critic_figures(model, greedy))
     out.update(normaliser_figures(model))
     out.update(actor_objective_figures(model, sampled))
+    out.update(pull_figures(model, sampled))
     return out
 
 

@@ -62,6 +62,8 @@ def test_every_figure_of_both_models(pendulum_models, capsys):
         assert figures["level0/feedback_r2"] <= 1.0 and {f"state/abs_mean_obs{k}" for k in range(3)} <= set(figures)
         assert {f"level0/feedback_gain_a0_obs{k}" for k in range(3)} <= set(figures)
         ascent = [figures[f"level0/ascent_corr_a0_obs{k}"] for k in range(3)]
+        assert figures["level0/pull_snr"] >= 0.0 and -1.0 <= figures["level0/pull_split_half"] <= 1.0
+        assert figures["level0/pull_obs_r2"] <= 1.0
         assert all(-1.0 <= c <= 1.0 for c in ascent if not math.isnan(c))
     # the two-level model has a subgoal term at level 0 and a level above whose subgoals change or not
     assert "level0/grad_share/subgoal" in results["two"] and "level0/grad_share/subgoal" not in results["one"]
