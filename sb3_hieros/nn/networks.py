@@ -45,6 +45,17 @@ def trunc_normal_init_(module: nn.Module, scale: float = 1.0) -> None:
             module.bias.zero_()
 
 
+def layer_norm(norm: nn.LayerNorm, x: th.Tensor) -> th.Tensor:
+    """``norm(x)`` without the module call (hooks, tracing checks), which costs more than the norm itself on a small
+    batch on a CPU; for the acting and imagination hot paths.
+
+    :param norm: the LayerNorm module whose parameters are used
+    :param x: (..., *norm.normalized_shape)
+    :return: same shape as ``x``
+    """
+    return F.layer_norm(x, norm.normalized_shape, norm.weight, norm.bias, norm.eps)
+
+
 class MLP(nn.Module):
     """``layers`` blocks of Linear -> LayerNorm -> activation, then an optional output Linear (DreamerV3).
 
@@ -82,23 +93,16 @@ class MLP(nn.Module):
             raise ValueError(f"layers must be >= 0, got {layers}")
         self.in_dim = in_dim
         self.symlog_inputs = symlog_inputs
-        blocks: list[nn.Module] = []
+        # (linear, norm or None, activation) per hidden block, called functionally in forward: the modules' own
+        # __call__ (hooks, tracing checks) costs about a third of a batch-1 MLP on a CPU
+        self._blocks: list[tuple[nn.Linear, nn.LayerNorm | None, nn.Module]] = []
         dim = in_dim
         for _ in range(layers):
             linear = nn.Linear(dim, hidden, bias=not norm)
             trunc_normal_init_(linear)
-            blocks.append(linear)
-            if norm:
-                blocks.append(nn.LayerNorm(hidden, eps=1e-3))
-            blocks.append(act())
+            self._blocks.append((linear, nn.LayerNorm(hidden, eps=1e-3) if norm else None, act()))
             dim = hidden
-        self.hidden = nn.Sequential(*blocks)
-        # (linear, norm or None, activation) per hidden block, called functionally in forward: the modules' own
-        # __call__ (hooks, tracing checks) costs about a third of a batch-1 MLP on a CPU
-        step = 3 if norm else 2
-        self._blocks = [
-            (blocks[i], blocks[i + 1] if norm else None, blocks[i + step - 1]) for i in range(0, len(blocks), step)
-        ]
+        self.hidden = nn.Sequential(*(m for block in self._blocks for m in block if m is not None))
         self.out: nn.Linear | None = None
         if out_dim is not None:
             self.out = nn.Linear(dim, out_dim)
@@ -117,7 +121,7 @@ class MLP(nn.Module):
         for linear, norm, act in self._blocks:  # the layers of self.hidden, without their module calls
             x = F.linear(x, linear.weight, linear.bias)
             if norm is not None:
-                x = F.layer_norm(x, norm.normalized_shape, norm.weight, norm.bias, norm.eps)
+                x = layer_norm(norm, x)
             x = act.forward(x)
         return x if self.out is None else F.linear(x, self.out.weight, self.out.bias)
 

@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from sb3_hieros.nn.networks import without_autocast
+from sb3_hieros.nn.networks import layer_norm, without_autocast
 from sb3_hieros.nn.scan import (
     associative_scan_resettable,
     associative_scan_resettable_real,
@@ -440,10 +440,7 @@ class S5Block(nn.Module):
     def _step(
         self, x: torch.Tensor, state: torch.Tensor | None, reset: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        norm = self.norm  # called functionally: one step is small enough for the module call to count
-        y, new_state = self.s5._step(
-            F.layer_norm(x, norm.normalized_shape, norm.weight, norm.bias, norm.eps), state, reset
-        )
+        y, new_state = self.s5._step(layer_norm(self.norm, x), state, reset)
         y = F.silu(y)
         if self.training and self.dropout.p > 0.0:  # otherwise dropout returns its input
             y = self.dropout(y)

@@ -6,7 +6,7 @@ import torch as th
 import torch.nn.functional as F
 from torch import nn
 
-from sb3_hieros.nn.networks import trunc_normal_init_
+from sb3_hieros.nn.networks import layer_norm, trunc_normal_init_
 
 __all__ = ["InputLayer", "LayerNormGRUCell"]
 
@@ -36,8 +36,7 @@ class InputLayer(nn.Module):
         :param pre: (..., out_dim)
         :return: (..., out_dim)
         """
-        norm = self.norm  # called functionally, as in MLP: the module call costs more than the norm at batch 1
-        return F.silu(F.layer_norm(pre, norm.normalized_shape, norm.weight, norm.bias, norm.eps))
+        return F.silu(layer_norm(self.norm, pre))
 
     def forward(self, stoch: th.Tensor, action: th.Tensor) -> th.Tensor:
         """:param stoch: (..., stoch_dim)
