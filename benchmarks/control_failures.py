@@ -212,18 +212,12 @@ def feedback_figures(model: HIEROS, episodes: Sequence[Episode]) -> dict[str, fl
     :return: ``level0/feedback_r2``, ``level0/feedback_bias_a{j}``, ``level0/feedback_gain_a{j}_obs{k}`` (for at most
         :data:`MAX_FEEDBACK_GAINS` pairs) and ``state/abs_mean_obs{k}``
     """
-    if not isinstance(model.action_space, spaces.Box) or not isinstance(model.observation_space, spaces.Box):
+    if not _box_and_vector(model):
         return {}
-    if len(model.observation_space.shape) != 1:
-        return {}
-    obs = np.concatenate([np.stack(e.observations) for e in episodes])  # (N, D)
+    obs = _stacked_observations(episodes)  # (N, D)
     mode = np.concatenate([np.stack(e.mode) for e in episodes])  # (N, A)
-    design = np.concatenate([obs, np.ones((len(obs), 1))], 1)  # (N, D + 1)
-    coef, *_ = np.linalg.lstsq(design, mode, rcond=None)  # (D + 1, A)
-    residual = ((mode - design @ coef) ** 2).sum()
-    spread = ((mode - mode.mean(0)) ** 2).sum()
-    varies = np.ptp(mode, axis=0).max() > 0  # a constant action has no variance to explain
-    out = {"level0/feedback_r2": float(1.0 - residual / spread) if varies else math.nan}
+    coef, r2 = _linear_fit(obs, mode)  # (D + 1, A)
+    out = {"level0/feedback_r2": r2}
     n_obs, n_act = obs.shape[1], mode.shape[1]
     for j in range(n_act):
         out[f"level0/feedback_bias_a{j}"] = float(coef[-1, j])
@@ -420,6 +414,57 @@ def _grad_norm(loss: th.Tensor, params: Sequence[th.Tensor]) -> float:
     return math.sqrt(sum(float((g.float() ** 2).sum()) for g in grads if g is not None))
 
 
+def _imagined_advantages(
+    ac: Any, imagined: Any, rewards: dict[str, th.Tensor], dynamics: bool
+) -> tuple[th.Tensor, dict[str, th.Tensor]]:
+    """The discount weights of an imagined rollout and each reward term's normalised advantage
+    ``alpha_k (R^k - v^k) / S_k`` as the actor loss has them (eq. 4.3, 4.9).
+
+    :param ac: the level's actor-critic
+    :param imagined: the level's imagined trajectory (``features``, ``continues``), (H + 1, N, ...)
+    :param rewards: per term the imagined rewards, (H + 1, N)
+    :param dynamics: the critics' values keep the graph to the features (dynamics backpropagation) instead of being
+        detached (REINFORCE)
+    :return: weights (H, N) and per term advantages (H, N)
+    """
+    feats, cont = imagined.features, imagined.continues
+    continues = th.cat([th.ones_like(cont[:1]), cont[1:].detach()], 0)
+    weight = cumulative_discount(continues, ac.discount)[:-1]
+    advantages = {}
+    for name, alpha in ac.reward_weights.items():
+        critic = ac.critics[name]
+        values = critic.value(feats, detach_params=True) if dynamics else critic.value(feats.detach()).detach()
+        returns = lambda_returns(rewards[name][1:], values[:-1], continues[1:], values[-1], ac.discount, ac.lambda_)
+        advantages[name] = alpha * (returns - values[:-1]) / ac.return_scale(name)
+    return weight, advantages
+
+
+def _box_and_vector(model: HIEROS) -> bool:
+    """Box actions and a flat vector observation: the spaces the state-feedback figures are defined for."""
+    space = model.observation_space
+    return isinstance(model.action_space, spaces.Box) and isinstance(space, spaces.Box) and len(space.shape) == 1
+
+
+def _stacked_observations(episodes: Sequence[Episode]) -> np.ndarray:
+    """The episodes' observations, concatenated in play order: (N, D)."""
+    return np.concatenate([np.stack(e.observations) for e in episodes])
+
+
+def _linear_fit(obs: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares fit ``target ~ K obs + c`` and the share of the target's variance it explains.
+
+    :param obs: (N, D)
+    :param target: (N,) or (N, A)
+    :return: coefficients (D + 1[, A]) with the constant last, and R^2 (NaN for a constant target)
+    """
+    design = np.concatenate([obs, np.ones((len(obs), 1))], 1)  # (N, D + 1)
+    coef, *_ = np.linalg.lstsq(design, target, rcond=None)
+    residual = ((target - design @ coef) ** 2).sum()
+    spread = ((target - target.mean(0)) ** 2).sum()
+    varies = np.ptp(target, axis=0).max() > 0  # a constant target has no variance to explain
+    return coef, float(1.0 - residual / spread) if varies else math.nan
+
+
 def ascent_figures(
     model: HIEROS, episodes: Sequence[Episode], chosen: th.Tensor, ascent: th.Tensor
 ) -> dict[str, float]:
@@ -437,11 +482,9 @@ def ascent_figures(
     :param ascent: (N, A) ascent directions of the first imagined action
     :return: ``level0/ascent_corr_a{j}_obs{k}`` for at most :data:`MAX_FEEDBACK_GAINS` pairs
     """
-    if not isinstance(model.action_space, spaces.Box) or not isinstance(model.observation_space, spaces.Box):
+    if not _box_and_vector(model):
         return {}
-    if len(model.observation_space.shape) != 1:
-        return {}
-    obs = np.concatenate([np.stack(e.observations) for e in episodes])[chosen.numpy()]  # (N, D)
+    obs = _stacked_observations(episodes)[chosen.numpy()]  # (N, D)
     pull = ascent.detach().float().reshape(ascent.shape[0], -1).numpy()  # (N, A)
     if obs.shape[1] * pull.shape[1] > MAX_FEEDBACK_GAINS:
         return {}
@@ -502,20 +545,12 @@ def actor_objective_figures(model: HIEROS, episodes: Sequence[Episode], max_star
         with th.enable_grad(), _recorded_samples(ac.actor) as drawn:
             imagined = level.imagine(start, codes)
             rewards = level.imagined_rewards(imagined)
-            feats, actions, cont = imagined.features, imagined.actions, imagined.continues
-            continues = th.cat([th.ones_like(cont[:1]), cont[1:].detach()], 0)
-            w = cumulative_discount(continues, ac.discount)[:-1]
+            w, advantages = _imagined_advantages(ac, imagined, rewards, dynamics)
             params = list(ac.actor_parameters())
-            dist = ac.actor(feats.detach()[:-1])
+            dist = ac.actor(imagined.features.detach()[:-1])
             norms, total = {}, 0.0
-            for name, alpha in ac.reward_weights.items():
-                critic = ac.critics[name]
-                values = critic.value(feats, detach_params=True) if dynamics else critic.value(feats.detach()).detach()
-                returns = lambda_returns(
-                    rewards[name][1:], values[:-1], continues[1:], values[-1], ac.discount, ac.lambda_
-                )
-                advantage = alpha * (returns - values[:-1]) / ac.return_scale(name)
-                objective = advantage if dynamics else dist.log_prob(actions.detach()) * advantage.detach()
+            for name, advantage in advantages.items():
+                objective = advantage if dynamics else dist.log_prob(imagined.actions.detach()) * advantage.detach()
                 term = -(w * objective).mean()
                 total = total + term
                 norms[name] = _grad_norm(term, params)
@@ -556,9 +591,7 @@ def pull_figures(model: HIEROS, episodes: Sequence[Episode], starts: int = 128, 
     :return: ``level0/pull_snr``, ``level0/pull_split_half``, ``level0/pull_obs_r2``
     """
     level = model.policy.hierarchy.levels[0]
-    if level.imag_gradient != "dynamics" or not isinstance(model.observation_space, spaces.Box):
-        return {}
-    if len(model.observation_space.shape) != 1 or samples < 4:
+    if level.imag_gradient != "dynamics" or not _box_and_vector(model) or samples < 4:
         return {}
     hierarchy, ac = model.policy.hierarchy, level.actor_critic
     latents = [s for e in episodes for s in e.latents[0]]
@@ -569,27 +602,20 @@ def pull_figures(model: HIEROS, episodes: Sequence[Episode], starts: int = 128, 
     model.policy.set_training_mode(True)
     with th.enable_grad(), _recorded_samples(ac.actor) as drawn:
         imagined = level.imagine(start, codes)
-        rewards = level.imagined_rewards(imagined)
-        cont = imagined.continues
-        continues = th.cat([th.ones_like(cont[:1]), cont[1:].detach()], 0)
-        weight = cumulative_discount(continues, ac.discount)[:-1]
+        weight, advantages = _imagined_advantages(ac, imagined, level.imagined_rewards(imagined), True)
         loss = th.zeros(())
-        for name, alpha in ac.reward_weights.items():
-            values = ac.critics[name].value(imagined.features, detach_params=True)
-            returns = lambda_returns(rewards[name][1:], values[:-1], continues[1:], values[-1], ac.discount, ac.lambda_)
-            loss = loss - (weight * alpha * (returns - values[:-1]) / ac.return_scale(name)).mean()
+        for advantage in advantages.values():
+            loss = loss - (weight * advantage).mean()
         pull = -th.autograd.grad(loss, drawn[0])[0]
     model.policy.set_training_mode(False)
     pull_np = pull.detach().float().reshape(len(chosen), samples, -1)[..., 0].numpy()  # (starts, samples)
     mean, var = pull_np.mean(1), pull_np.var(1, ddof=1)
     half = samples // 2
-    obs = np.concatenate([np.stack(e.observations) for e in episodes])[chosen.numpy()]  # (starts, D)
-    design = np.concatenate([obs, np.ones((len(obs), 1))], 1)
-    coef, *_ = np.linalg.lstsq(design, mean, rcond=None)
+    _, obs_r2 = _linear_fit(_stacked_observations(episodes)[chosen.numpy()], mean)
     return {
         "level0/pull_snr": float(np.median(mean**2 / np.maximum(var, 1e-30))),
         "level0/pull_split_half": float(np.corrcoef(pull_np[:, :half].mean(1), pull_np[:, half:].mean(1))[0, 1]),
-        "level0/pull_obs_r2": float(1.0 - ((mean - design @ coef) ** 2).mean() / mean.var()),
+        "level0/pull_obs_r2": obs_r2,
     }
 
 
