@@ -7,6 +7,7 @@ The run trains ``--steps`` agent steps (default: the suite's budget, e.g. 100k f
 * ``train.monitor.csv`` / ``eval.monitor.csv``: SB3 ``Monitor`` logs of the training and evaluation episodes;
 * ``evaluations.npz``: the periodic evaluations (``EvalCallback``'s ``timesteps``, ``results``, ``ep_lengths``);
 * ``model.zip``: the trained model (``HIEROS.load`` reads it);
+* ``replay_buffer.pkl`` with ``--save-replay-buffer``: its replay (``load_replay_buffer`` reads it);
 * ``result.json``: suite, task, seed, preset, steps, final mean/std return, the final returns, the periodic
   evaluation curve, wall time and the keywords of the run (:func:`benchmarks.aggregate.load_results` reads it).
 
@@ -73,6 +74,7 @@ def train(
     deterministic: bool = True,
     device: str = "auto",
     verbose: int = 0,
+    save_replay_buffer: bool = False,
 ) -> dict[str, Any]:
     """Train HIEROS on one task of a suite, evaluate it and write the run's files (see the module docstring).
 
@@ -92,6 +94,8 @@ def train(
     :param deterministic: evaluate with the deterministic policy
     :param device: torch device
     :param verbose: HIEROS verbosity
+    :param save_replay_buffer: also save the replay buffer as ``replay_buffer.pkl`` (to continue the run later with
+        ``HIEROS.load`` and ``load_replay_buffer``)
     :return: the record written to ``result.json``
     """
     import torch as th
@@ -148,6 +152,8 @@ def train(
         model, eval_env, n_eval_episodes=eval_episodes, deterministic=deterministic, return_episode_rewards=True
     )
     model.save(folder / "model.zip")
+    if save_replay_buffer:
+        model.save_replay_buffer(folder / "replay_buffer.pkl")
     record = {
         "suite": suite,
         "task": task,
@@ -200,6 +206,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--stochastic-eval", action="store_true", help="evaluate with sampled actions")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--verbose", type=int, default=0)
+    parser.add_argument("--save-replay-buffer", action="store_true", help="also save replay_buffer.pkl")
     args = parser.parse_args(argv)
     record = train(
         args.suite,
@@ -218,6 +225,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         deterministic=not args.stochastic_eval,
         device=args.device,
         verbose=args.verbose,
+        save_replay_buffer=args.save_replay_buffer,
     )
     print(
         f"{record['suite']} {record['task']} seed {record['seed']}: final return {record['final_mean']:.2f} "

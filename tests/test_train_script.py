@@ -40,6 +40,21 @@ def test_train_classic_run(tmp_path):
     assert lines and sum(int(line.split(",")[1]) for line in lines) <= 120
     model = HIEROS.load(folder / "model.zip")
     assert model.config.n_levels == 1 and model.learning_starts == 10_000
+    assert not (folder / "replay_buffer.pkl").exists()  # only with --save-replay-buffer
+
+
+def test_train_saves_the_replay_buffer_on_request(tmp_path):
+    main(
+        [
+            "--suite", "classic", "--task", "CartPole-v1", "--preset", "small", "--steps", "40", "--eval-freq", "0",
+            "--eval-episodes", "1", "--out", str(tmp_path), "--hieros-kwargs", json.dumps(TINY),
+            "--config-overrides", '{"n_levels": 1}', "--save-replay-buffer",
+        ]
+    )  # fmt: skip
+    folder = run_dir(tmp_path, "classic", "CartPole-v1", 0)
+    model = HIEROS.load(folder / "model.zip")
+    model.load_replay_buffer(folder / "replay_buffer.pkl")
+    assert model.level_buffers()[0].size() >= 40  # the 40 steps (and a row per episode start)
 
 
 def test_train_refuses_bad_arguments(tmp_path):
