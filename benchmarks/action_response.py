@@ -217,7 +217,8 @@ def run(
             metrics = train(model, data, updates, seed)
             seconds = time.perf_counter() - start
             model.eval()
-            figures = {"train_seconds": seconds, "obs_loss": metrics.get("obs_loss", float("nan"))}
+            figures = {"train_seconds": seconds}
+            figures.update({name: metrics.get(name, float("nan")) for name in ("obs_loss", "kl", "post_entropy")})
             for mode, samples in (("mode", 0), ("sampled", 32)):
                 figures.update({f"{mode}_{k}": v for k, v in action_response(model, held_out, copies, samples).items()})
             print(

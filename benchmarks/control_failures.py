@@ -28,6 +28,10 @@ actions (the training behaviour), and reports per model:
   0 one that ignores them: the actor learns by back-propagating through these differences;
 * **critic** (level 0, extrinsic term): its value at each visited state against the realised discounted return
   (bootstrapped with the critic's value where an episode is cut by its time limit): means, bias and correlation;
+* **imagination** (level 0): from the posterior state at every ``--stride``-th step of the sampled episodes, an
+  imagined rollout as in training (the actor sampling actions in the world model); its extrinsic rewards at steps
+  1..H against the rewards the episode received over the same steps (mean per step, and the bias at the first and
+  the last imagined step): whether the policy's imagined future is worse or better than its real one;
 * **return normalisers**: the scale ``max(1, P95 - P5)`` of every reward term of every level;
 * **actor objective** (every level, from the posterior states of the sampled episodes, imagined as training does):
   per reward term the spread of its normalised advantage and the gradient norm it puts on the actor's parameters,
@@ -619,6 +623,48 @@ def pull_figures(model: HIEROS, episodes: Sequence[Episode], starts: int = 128, 
     }
 
 
+@th.no_grad()
+def imagination_figures(model: HIEROS, episodes: Sequence[Episode], stride: int) -> dict[str, float]:
+    """Closed-loop imagination against what followed: level 0's imagined extrinsic rewards against the real ones.
+
+    From the posterior state at every ``stride``-th step ``t`` of each episode with ``imag_horizon`` steps left, level
+    0 imagines as training does (its actor sampling actions in the world model, the subgoal in force held fixed);
+    its imagined rewards at steps 1..H are set beside the rewards the episode received at t..t+H-1, which came from
+    the same policy (sampled actions) in the real environment. A world model whose closed-loop imagination drifts to
+    worse (better) states than the policy reaches shows a negative (positive) reward bias growing with the step.
+
+    :param model: the agent
+    :param episodes: episodes played with sampled actions (the behaviour imagination imitates)
+    :param stride: start every this many steps
+    :return: ``imagination/reward_imagined`` and ``reward_real`` (mean per step), ``reward_bias_first`` and
+        ``reward_bias_last`` (imagined minus real at the first and the last imagined step), ``starts``
+    """
+    hierarchy = model.policy.hierarchy
+    level = hierarchy.levels[0]
+    horizon = level.config.imag_horizon
+    latents, codes, real = [], [], []
+    for e in episodes:
+        for t in range(0, len(e.rewards) - horizon + 1, stride):
+            latents.append(e.latents[0][t])
+            if hierarchy.n_levels > 1:
+                codes.append(e.codes[1][t])
+            real.append(e.rewards[t : t + horizon])
+    if not latents:
+        return {}
+    start = stack_states(latents, 0).flatten_batch().detach()
+    imagined = level.imagine(start, th.stack(codes) if codes else None)
+    rewards = imagined.rewards[1:].float().numpy().T  # (N, H): the reward of imagined steps 1..H
+    real_np = np.array(real)  # (N, H)
+    bias = (rewards - real_np).mean(0)  # (H,)
+    return {
+        "imagination/reward_imagined": float(rewards.mean()),
+        "imagination/reward_real": float(real_np.mean()),
+        "imagination/reward_bias_first": float(bias[0]),
+        "imagination/reward_bias_last": float(bias[-1]),
+        "imagination/starts": float(len(latents)),
+    }
+
+
 def analyse(
     model: HIEROS, suite: str, task: str, episodes: int, seed: int, horizon: int, stride: int, response_steps: int
 ) -> dict[str, float]:
@@ -641,6 +687,7 @@ def analyse(
     seeds = [seed + j for j in range(episodes)]
     out.update(action_response_figures(model, suite, task, seeds, greedy, response_steps, stride))
     out.update(critic_figures(model, greedy))
+    out.update(imagination_figures(model, sampled, stride))
     out.update(normaliser_figures(model))
     out.update(actor_objective_figures(model, sampled))
     out.update(pull_figures(model, sampled))

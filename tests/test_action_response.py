@@ -65,6 +65,7 @@ def test_tiny_run_reports_every_figure(capsys):
             assert f"s5/0/{mode}_{name}_slope" in results
             assert f"s5/0/{mode}_{name}_corr" in results
     assert math.isfinite(results["s5/0/mode_pole_angular_velocity_slope"])
+    assert results["s5/0/kl"] >= 0 and results["s5/0/post_entropy"] > 0 and results["s5/0/obs_loss"] > 0
     assert "s5 seed 0: 2 updates" in capsys.readouterr().out
 
 

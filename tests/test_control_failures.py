@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from copy import deepcopy
+from types import SimpleNamespace
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -65,6 +66,7 @@ def test_every_figure_of_both_models(pendulum_models, capsys):
         assert figures["level0/pull_snr"] >= 0.0 and -1.0 <= figures["level0/pull_split_half"] <= 1.0
         assert figures["level0/pull_obs_r2"] <= 1.0
         assert all(-1.0 <= c <= 1.0 for c in ascent if not math.isnan(c))
+        assert figures["imagination/starts"] >= 1 and figures["imagination/reward_real"] <= 0.0
     # the two-level model has a subgoal term at level 0 and a level above whose subgoals change or not
     assert "level0/grad_share/subgoal" in results["two"] and "level0/grad_share/subgoal" not in results["one"]
     assert 0.0 <= results["two"]["level1/subgoal_change_rate"] <= 1.0
@@ -155,3 +157,26 @@ def test_action_response_of_a_perfect_model_is_one(pendulum_models, monkeypatch)
     assert len(figures) == 5
     for key, value in figures.items():
         assert value == pytest.approx(1.0), key
+
+
+def test_imagination_of_a_model_that_predicts_the_episode_has_no_bias(pendulum_models, monkeypatch):
+    # imagined rewards at steps 1..H must be set beside the rewards the episode received at t..t+H-1
+    model = HIEROS.load(pendulum_models["two"], device="cpu")
+    th.manual_seed(0)
+    episode = control_failures.play(model, make_env("classic", "Pendulum-v1", seed=5), 5, False)
+    episode.latents[0] = [s._replace(stoch=th.full_like(s.stoch, t)) for t, s in enumerate(episode.latents[0])]
+    level = model.policy.hierarchy.levels[0]
+    horizon = level.config.imag_horizon
+    received = th.tensor(episode.rewards + [0.0] * horizon)
+
+    def imagine(start, codes):
+        t = start.stoch[:, 0].long()  # (N,)
+        steps = th.arange(-1, horizon).unsqueeze(1)  # the reward of imagined step k is the one received at t + k - 1
+        return SimpleNamespace(rewards=received[(t.unsqueeze(0) + steps).clamp(min=0)])
+
+    monkeypatch.setattr(level, "imagine", imagine)
+    figures = control_failures.imagination_figures(model, [episode], stride=7)
+    assert figures["imagination/starts"] == len(range(0, len(episode.rewards) - horizon + 1, 7))
+    assert figures["imagination/reward_imagined"] == pytest.approx(figures["imagination/reward_real"])
+    assert figures["imagination/reward_bias_first"] == pytest.approx(0.0, abs=1e-6)
+    assert figures["imagination/reward_bias_last"] == pytest.approx(0.0, abs=1e-6)
