@@ -32,8 +32,7 @@ import numpy as np
 from benchmarks._timing import environment_header
 from benchmarks.control_failures import critic_figures, play
 from benchmarks.suites import SUITES, make_env
-
-EVAL_SEED_OFFSET = 10_000
+from benchmarks.train import EVAL_SEED_OFFSET, check_counts
 
 
 def continue_run(
@@ -58,7 +57,7 @@ def continue_run(
     :param freeze_world_model: world-model learning rate 0 at every level
     :param eval_every: agent steps between evaluations (>= 1)
     :param eval_episodes: deterministic episodes per evaluation (>= 1)
-    :param seed: seed of the training env (the evaluation env gets ``seed + EVAL_SEED_OFFSET``)
+    :param seed: seed of the training env (the evaluation episodes are reset with ``seed + EVAL_SEED_OFFSET + j``)
     :param save: where to save the continued model, or None
     :return: for 0 and every evaluation's steps: ``return_at_{steps}`` (mean of the evaluation's episodes),
         ``return_std_at_{steps}``, ``value_at_{steps}`` and ``discounted_return_at_{steps}`` (level 0's mean extrinsic
@@ -71,9 +70,7 @@ def continue_run(
 
     if suite not in SUITES:
         raise ValueError(f"unknown suite {suite!r}; expected one of {sorted(SUITES)}")
-    for name, value in (("steps", steps), ("eval_every", eval_every), ("eval_episodes", eval_episodes)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+    check_counts(steps=steps, eval_every=eval_every, eval_episodes=eval_episodes)
     folder = pathlib.Path(run)
     for name in ("model.zip", "replay_buffer.pkl"):
         if not (folder / name).is_file():
@@ -120,6 +117,8 @@ def continue_run(
         figures[f"level{i}_updates"] = float(after - before)
     if save is not None:
         model.save(save)
+    env.close()
+    eval_env.close()
     return figures
 
 

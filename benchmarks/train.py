@@ -57,6 +57,16 @@ def _vec_env(suite: str, task: str, seed: int, monitor_file: pathlib.Path, env_k
     return venv
 
 
+def check_counts(**counts: Any) -> None:
+    """Raise ``ValueError`` naming the first value that is not an int >= 1 (bools are refused).
+
+    :param counts: name -> value
+    """
+    for name, value in counts.items():
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+
+
 def train(
     suite: str,
     task: str,
@@ -107,13 +117,9 @@ def train(
     if suite not in SUITES:
         raise ValueError(f"unknown suite {suite!r}; expected one of {sorted(SUITES)}")
     steps = SUITES[suite].agent_steps if steps is None else steps
-    for name, value in (("steps", steps), ("eval_episodes", eval_episodes), ("threads", threads)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be an int >= 1, got {value!r}")
-    if isinstance(periodic_eval_episodes, bool) or not isinstance(periodic_eval_episodes, int):
-        raise ValueError(f"periodic_eval_episodes must be an int >= 1, got {periodic_eval_episodes!r}")
-    if periodic_eval_episodes < 1:
-        raise ValueError(f"periodic_eval_episodes must be an int >= 1, got {periodic_eval_episodes!r}")
+    check_counts(
+        steps=steps, eval_episodes=eval_episodes, threads=threads, periodic_eval_episodes=periodic_eval_episodes
+    )
     hieros_kwargs = dict(hieros_kwargs or {})
     for reserved in ("preset", "config_overrides", "seed", "env", "policy"):
         if reserved in hieros_kwargs:
