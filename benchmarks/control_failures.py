@@ -419,7 +419,7 @@ def _grad_norm(loss: th.Tensor, params: Sequence[th.Tensor]) -> float:
 
 
 def _imagined_advantages(
-    ac: Any, imagined: Any, rewards: dict[str, th.Tensor], dynamics: bool
+    ac: Any, imagined: Any, rewards: dict[str, th.Tensor], dynamics: bool, value_gradient: str | None = None
 ) -> tuple[th.Tensor, dict[str, th.Tensor]]:
     """The discount weights of an imagined rollout and each reward term's normalised advantage
     ``alpha_k (R^k - v^k) / S_k`` as the actor loss has them (eq. 4.3, 4.9).
@@ -429,17 +429,22 @@ def _imagined_advantages(
     :param rewards: per term the imagined rewards, (H + 1, N)
     :param dynamics: the critics' values keep the graph to the features (dynamics backpropagation) instead of being
         detached (REINFORCE)
+    :param value_gradient: with ``dynamics``, the values that keep the graph (``ActorCriticConfig.value_gradient``:
+        ``"all"``, ``"returns"``, ``"none"``); None: the actor-critic's own setting
     :return: weights (H, N) and per term advantages (H, N)
     """
+    chosen = ac.value_gradient if value_gradient is None else value_gradient
+    differentiable = dynamics and chosen != "none"
     feats, cont = imagined.features, imagined.continues
     continues = th.cat([th.ones_like(cont[:1]), cont[1:].detach()], 0)
     weight = cumulative_discount(continues, ac.discount)[:-1]
     advantages = {}
     for name, alpha in ac.reward_weights.items():
         critic = ac.critics[name]
-        values = critic.value(feats, detach_params=True) if dynamics else critic.value(feats.detach()).detach()
+        values = critic.value(feats, detach_params=True) if differentiable else critic.value(feats.detach()).detach()
         returns = lambda_returns(rewards[name][1:], values[:-1], continues[1:], values[-1], ac.discount, ac.lambda_)
-        advantages[name] = alpha * (returns - values[:-1]) / ac.return_scale(name)
+        baseline = values[:-1] if chosen == "all" else values[:-1].detach()
+        advantages[name] = alpha * (returns - baseline) / ac.return_scale(name)
     return weight, advantages
 
 
@@ -587,12 +592,19 @@ def pull_figures(model: HIEROS, episodes: Sequence[Episode], starts: int = 128, 
     function of the observation explains (R^2). A reliable pull that the observation does not explain comes from
     something other than the physical state (the latent's memory, the subgoal, model error).
 
+    The pull is also split by its path: through the imagined rewards alone (the critics' values detached from the
+    features) and through the critics' values (the rest). ``pull_critic_share`` is the critic path's share of the sum
+    of both paths' squared pulls; each path has its split-half reliability and observation R^2, and
+    ``pull_paths_corr`` correlates the two paths' per-start means.
+
     :param model: the agent (Box actions, a flat vector observation and dynamics backpropagation at level 0, else no
         figures)
     :param episodes: episodes whose level-0 states start the rollouts
     :param starts: start states (drawn without replacement)
     :param samples: rollouts per start (>= 4)
-    :return: ``level0/pull_snr``, ``level0/pull_split_half``, ``level0/pull_obs_r2``
+    :return: ``level0/pull_snr``, ``level0/pull_split_half``, ``level0/pull_obs_r2``, and per path
+        ``level0/pull_{reward,critic}_split_half`` and ``_obs_r2``, ``level0/pull_critic_share``,
+        ``level0/pull_paths_corr``
     """
     level = model.policy.hierarchy.levels[0]
     if level.imag_gradient != "dynamics" or not _box_and_vector(model) or samples < 4:
@@ -606,21 +618,38 @@ def pull_figures(model: HIEROS, episodes: Sequence[Episode], starts: int = 128, 
     model.policy.set_training_mode(True)
     with th.enable_grad(), _recorded_samples(ac.actor) as drawn:
         imagined = level.imagine(start, codes)
-        weight, advantages = _imagined_advantages(ac, imagined, level.imagined_rewards(imagined), True)
-        loss = th.zeros(())
-        for advantage in advantages.values():
-            loss = loss - (weight * advantage).mean()
-        pull = -th.autograd.grad(loss, drawn[0])[0]
+        rewards = level.imagined_rewards(imagined)
+        pulls = []
+        for value_gradient in (None, "none"):
+            weight, advantages = _imagined_advantages(ac, imagined, rewards, True, value_gradient)
+            loss = th.zeros(())
+            for advantage in advantages.values():
+                loss = loss - (weight * advantage).mean()
+            pull = -th.autograd.grad(loss, drawn[0], retain_graph=value_gradient is None)[0]
+            pulls.append(pull.detach().float().reshape(len(chosen), samples, -1)[..., 0].numpy())  # (starts, samples)
     model.policy.set_training_mode(False)
-    pull_np = pull.detach().float().reshape(len(chosen), samples, -1)[..., 0].numpy()  # (starts, samples)
-    mean, var = pull_np.mean(1), pull_np.var(1, ddof=1)
+    pull_np, reward_np = pulls
+    critic_np = pull_np - reward_np
+    obs = _stacked_observations(episodes)[chosen.numpy()]
     half = samples // 2
-    _, obs_r2 = _linear_fit(_stacked_observations(episodes)[chosen.numpy()], mean)
-    return {
+
+    def split_half(x: np.ndarray) -> float:
+        return float(np.corrcoef(x[:, :half].mean(1), x[:, half:].mean(1))[0, 1])
+
+    mean, var = pull_np.mean(1), pull_np.var(1, ddof=1)
+    out = {
         "level0/pull_snr": float(np.median(mean**2 / np.maximum(var, 1e-30))),
-        "level0/pull_split_half": float(np.corrcoef(pull_np[:, :half].mean(1), pull_np[:, half:].mean(1))[0, 1]),
-        "level0/pull_obs_r2": obs_r2,
+        "level0/pull_split_half": split_half(pull_np),
+        "level0/pull_obs_r2": _linear_fit(obs, mean)[1],
+        "level0/pull_critic_share": float(
+            (critic_np**2).sum() / max((critic_np**2).sum() + (reward_np**2).sum(), 1e-30)
+        ),
+        "level0/pull_paths_corr": float(np.corrcoef(reward_np.mean(1), critic_np.mean(1))[0, 1]),
     }
+    for name, path in (("reward", reward_np), ("critic", critic_np)):
+        out[f"level0/pull_{name}_split_half"] = split_half(path)
+        out[f"level0/pull_{name}_obs_r2"] = _linear_fit(obs, path.mean(1))[1]
+    return out
 
 
 @th.no_grad()

@@ -25,6 +25,8 @@ ACTION_ALIGNMENTS = ("previous", "current")
 REINFORCE_ADVANTAGES = ("normalized", "raw")
 TERMINAL_REWARDS = ("kept", "zeroed")
 RETURN_NORMALIZATIONS = ("combined", "per_term")
+#: Which critic values pass gradient to the actions under dynamics backpropagation (``ActorCriticConfig``).
+VALUE_GRADIENTS = ("all", "returns", "none")
 
 
 def _check_types(obj: object) -> None:
@@ -192,6 +194,12 @@ class ActorCriticConfig:
         in proportion to its weight and its size in reward units; ``"per_term"`` (the public HIEROS code): each term's
         advantage is divided by its own return scale, so each term's pull is set by its weight alone
         (:class:`~sb3_hieros.agent.actor_critic.ActorCritic`)
+    :param value_gradient: with dynamics backpropagation, which of the critics' values pass gradient to the
+        imagined actions: ``"all"`` (default, DreamerV3's code): the values in the lambda-returns and the baseline
+        v(s_t) the advantage subtracts; ``"returns"``: the baseline is held fixed, so the actor climbs the
+        lambda-returns (DreamerV2's dynamics objective); ``"none"``: every value is held fixed, so the gradient comes
+        through the imagined rewards of the horizon alone (:class:`~sb3_hieros.agent.actor_critic.ActorCritic`).
+        REINFORCE is unaffected
     """
 
     units: int = 256
@@ -211,6 +219,7 @@ class ActorCriticConfig:
     grad_clip: float = 100.0
     slow_critic_fraction: float = 0.02
     return_normalization: str = "combined"
+    value_gradient: str = "all"
 
     def __post_init__(self) -> None:
         _check_types(self)
@@ -218,6 +227,7 @@ class ActorCriticConfig:
         _check_choice(self, "return_normalization", RETURN_NORMALIZATIONS)
         _check_fraction(self, "discount", "lambda_", "unimix", "slow_critic_fraction")
         _check_choice(self, "imag_gradient", IMAG_GRADIENTS)
+        _check_choice(self, "value_gradient", VALUE_GRADIENTS)
         for name in ("entropy", "extrinsic_weight", "subgoal_weight", "novelty_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"ActorCriticConfig.{name} must be >= 0, got {getattr(self, name)!r}")
@@ -309,6 +319,9 @@ class HierosConfig:
         an imagination rollout, drawn uniformly without replacement at every update; 1.0 (default, thesis and
         DreamerV3): all of them. Fewer starts make the actor-critic half of an update cheaper (a CPU lever)
     :param train_ratio: replayed steps per environment step at level 0 (DreamerV3's train ratio)
+    :param world_model_updates: world-model updates per update of a level (Algorithm 2 step 1): 1 (default, thesis)
+        is the update on the batch the level then imagines from; each further one comes before it, on a batch of its
+        own, so the world model learns ``world_model_updates`` times as much replay per actor-critic update
     :param buffer_size: replay capacity of level 0 in steps (higher levels get ``buffer_size // k**i``)
     :param learning_starts: environment steps of random actions before training starts
     :param etbs_temperature: tau of ETBS (thesis 4.5, eq. 4.21)
@@ -345,6 +358,7 @@ class HierosConfig:
     imag_horizon: int = 16
     imag_start_fraction: float = 1.0
     train_ratio: float = 1024.0
+    world_model_updates: int = 1
     buffer_size: int = 1_000_000
     learning_starts: int = 1024
     etbs_temperature: float = 0.3
@@ -362,7 +376,7 @@ class HierosConfig:
         _check_positive(
             self, "n_levels", "subgoal_interval", "batch_size", "batch_length", "imag_horizon", "train_ratio"
         )
-        _check_positive(self, "buffer_size")
+        _check_positive(self, "buffer_size", "world_model_updates")
         fraction = self.imag_start_fraction
         if not isinstance(fraction, int | float) or isinstance(fraction, bool) or not 0.0 < fraction <= 1.0:
             raise ValueError(f"HierosConfig.imag_start_fraction must be in (0, 1], got {self.imag_start_fraction!r}")

@@ -18,7 +18,8 @@ that says what HIEROS uses instead.
 
 Training schedule: ``train_ratio`` is DreamerV3's replayed steps per environment step: level 0 makes
 ``train_ratio * n_envs / (batch_size * batch_length)`` updates per vec-env step (the fraction is carried over), and
-level i >= 1 trains at every ``k**i``-th level-0 update once its buffer can sample. No update happens before
+level i >= 1 trains at every ``k**i``-th level-0 update once its buffer can sample; each of these updates is preceded
+by ``world_model_updates - 1`` world-model updates of the level on batches of their own. No update happens before
 ``learning_starts`` steps (uniformly random actions at every level until then, while the hierarchy still encodes every
 observation) or while level 0's buffer cannot sample a chunk (e.g. right after ``load``).
 
@@ -64,7 +65,7 @@ from sb3_hieros.policies import CnnPolicy, HierosPolicy, MlpPolicy, MultiInputPo
 from sb3_hieros.replay_io import read_replay, write_replay
 from sb3_hieros.save_util import prepare_model_load, qualified_name, safe_load_values, write_archive
 from sb3_hieros.spaces import check_finite_observations, check_finite_step
-from sb3_hieros.type_aliases import Observation, SequenceSamples
+from sb3_hieros.type_aliases import LevelUpdate, Observation, SequenceSamples
 
 __all__ = ["HIEROS"]
 
@@ -407,11 +408,11 @@ class HIEROS(OffPolicyAlgorithm):
 
     # ------------------------------------------------------------------------------------------------ training
 
-    def _record_level(self, level: int, metrics: dict[str, float]) -> None:
-        """Log one update of ``level`` and count its skipped (non-finite) optimiser steps
-        (:func:`~sb3_hieros.nn.guard.count_nonfinite`)."""
+    def _record_level(self, level: int, metrics: dict[str, float], count: bool = True) -> None:
+        """Log one update of ``level`` (counted in its updates if ``count``) and count its skipped (non-finite)
+        optimiser steps (:func:`~sb3_hieros.nn.guard.count_nonfinite`)."""
         assert self._level_updates is not None
-        self._level_updates[level] += 1
+        self._level_updates[level] += int(count)
         for key, value in metrics.items():
             self.logger.record_mean(f"train/level{level}/{key}", value)
         assert self._skipped_updates is not None and self._nonfinite_streak is not None
@@ -421,6 +422,42 @@ class HIEROS(OffPolicyAlgorithm):
             in_a_row = self._nonfinite_streak[level]
             if in_a_row >= self.max_nonfinite_updates:
                 raise nonfinite_error(metrics, level, skipped, in_a_row, self.max_nonfinite_updates)
+
+    def _sample_batches(self, levels: list[int], batch_size: int, lr: float) -> list[SequenceSamples | None]:
+        """A batch of each of ``levels``' replays (None for the others), their world models' learning rates set.
+
+        :param levels: the levels that train now
+        :param batch_size: chunks per batch
+        :param lr: the value of the learning-rate schedule
+        :return: per level with a replay, its batch or None
+        """
+        assert self._level_updates is not None
+        buffers, hierarchy = self.level_buffers(), self.policy.hierarchy
+        batches: list[SequenceSamples | None] = [None] * len(buffers)
+        for i in levels:
+            level = hierarchy.levels[i]
+            set_world_model_lr(level.wm_optimizer, level.wm_scheduler, lr, self._level_updates[i])
+            batches[i] = buffers[i].sample(batch_size, env=self._vec_normalize_env if i == 0 else None)
+        return batches
+
+    def _apply_updates(
+        self, batches: list[SequenceSamples | None], updates: list[LevelUpdate | None], count: bool
+    ) -> None:
+        """Log the levels' updates and store their replay contexts.
+
+        :param batches: per level with a replay, the batch it trained on or None
+        :param updates: per level, what its update returned or None
+        :param count: whether these are the levels' updates of the schedule (False for the extra world-model updates
+            of ``world_model_updates``, which are logged but not counted)
+        """
+        buffers = self.level_buffers()
+        for i, update in enumerate(updates):
+            if update is None:
+                continue
+            self._record_level(i, update.metrics, count)
+            batch = batches[i] if i < len(batches) else None
+            if update.context is not None and batch is not None and batch.index is not None:
+                buffers[i].store_context(batch.index, update.context)
 
     def train(self, gradient_steps: int, batch_size: int) -> None:
         """Level updates for ``gradient_steps`` new environment steps (see the module docstring's schedule).
@@ -443,19 +480,12 @@ class HIEROS(OffPolicyAlgorithm):
         self.logger.record("train/learning_rate", lr)
         hierarchy = self.policy.hierarchy
         for _ in range(n_updates):
-            batches: list[SequenceSamples | None] = [None] * len(buffers)
-            for i in hierarchy.levels_due(self._level_updates[0]):
-                if buffers[i].can_sample():
-                    level = hierarchy.levels[i]
-                    set_world_model_lr(level.wm_optimizer, level.wm_scheduler, lr, self._level_updates[i])
-                    batches[i] = buffers[i].sample(batch_size, env=self._vec_normalize_env if i == 0 else None)
-            for i, update in enumerate(hierarchy.train_step(batches)):
-                if update is None:
-                    continue
-                self._record_level(i, update.metrics)
-                batch = batches[i] if i < len(batches) else None
-                if update.context is not None and batch is not None and batch.index is not None:
-                    buffers[i].store_context(batch.index, update.context)
+            due = [i for i in hierarchy.levels_due(self._level_updates[0]) if buffers[i].can_sample()]
+            for _ in range(cfg.world_model_updates - 1):
+                batches = self._sample_batches(due, batch_size, lr)
+                self._apply_updates(batches, hierarchy.world_model_updates(batches), count=False)
+            batches = self._sample_batches(due, batch_size, lr)
+            self._apply_updates(batches, hierarchy.train_step(batches), count=True)
             self._n_updates += 1
         self.policy.set_training_mode(False)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")

@@ -344,6 +344,35 @@ def test_dynamics_gradient_flows_through_actions():
     assert acts.grad is None
 
 
+@pytest.mark.parametrize("value_gradient", ["all", "returns", "none"])
+def test_dynamics_value_gradient_chooses_the_values_that_pass_gradient(value_gradient):
+    ac = ActorCritic(5, "box", 2, hidden=16, layers=1, reward_weights={"extrinsic": 1.0}, value_gradient=value_gradient)
+    gen = th.Generator().manual_seed(5)
+    with th.no_grad():  # a critic that has learned something (its output layer starts at zero)
+        for p in ac.critics["extrinsic"].net.parameters():
+            p.copy_(th.randn(p.shape, generator=gen) * 0.5)
+    h, n = 4, 8
+    feats = th.randn(h + 1, n, 5, generator=gen).requires_grad_(True)
+    actions = th.rand(h, n, 2, generator=gen) * 2 - 1
+    rewards = {"extrinsic": th.zeros(h + 1, n)}  # no reward path: only the critic's values can carry gradient
+    actor_loss, _, _ = ac.loss(feats, actions, rewards, th.ones(h + 1, n))
+    if value_gradient == "none":
+        assert not actor_loss.requires_grad or th.autograd.grad(actor_loss, feats, allow_unused=True)[0] is None
+        return
+    (grad,) = th.autograd.grad(actor_loss, feats)  # (H+1, N, F)
+    # v(s_0) is only the baseline of R_0; the later values also enter the lambda-returns
+    assert (grad[0].abs().sum() > 0) == (value_gradient == "all")
+    assert grad[1:].abs().sum() > 0
+    # the lambda-returns' gradient alone: -mean_t,n(w_t R_t) / S, with the values of s_1..s_H differentiable
+    values = ac.critics["extrinsic"].value(feats, detach_params=True)
+    returns = lambda_returns(rewards["extrinsic"][1:], values[:-1], th.ones(h, n), values[-1], ac.discount, ac.lambda_)
+    weights = ac.discount ** th.arange(h, dtype=th.float32).unsqueeze(-1)
+    (expected,) = th.autograd.grad(-(weights * returns).mean() / ac.return_scale("extrinsic"), feats)
+    assert th.allclose(grad, expected, atol=1e-6) == (value_gradient == "returns")
+    with pytest.raises(ValueError, match="value_gradient must be one of"):
+        ActorCritic(5, "box", 2, value_gradient="baseline")
+
+
 def test_reinforce_learns_a_bandit():
     th.manual_seed(0)
     ac = ActorCritic(4, "discrete", 3, hidden=16, layers=1, reward_weights={"extrinsic": 1.0}, discount=1.0)

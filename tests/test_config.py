@@ -71,6 +71,12 @@ def test_hieros_config_rejects_bad_replay():
         HierosConfig(replay_context=1)
 
 
+def test_hieros_config_rejects_bad_world_model_updates():
+    with pytest.raises(ValueError, match="world_model_updates"):
+        HierosConfig(world_model_updates=0)
+    assert HierosConfig(world_model_updates=4).world_model_updates == 4
+
+
 def test_world_model_lr_zero_is_a_frozen_model_and_negative_is_refused():
     assert get_preset("small").replace(world_model={"lr": 0.0}).world_model.lr == 0.0
     with pytest.raises(ValueError, match=r"WorldModelConfig\.lr must be a number >= 0, got -0\.001"):

@@ -180,3 +180,19 @@ def test_imagination_of_a_model_that_predicts_the_episode_has_no_bias(pendulum_m
     assert figures["imagination/reward_imagined"] == pytest.approx(figures["imagination/reward_real"])
     assert figures["imagination/reward_bias_first"] == pytest.approx(0.0, abs=1e-6)
     assert figures["imagination/reward_bias_last"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_pull_is_split_into_its_reward_and_critic_paths(pendulum_models, monkeypatch):
+    model = HIEROS.load(pendulum_models["one"], device="cpu")
+    env = make_env("classic", "Pendulum-v1", seed=0)
+    episodes = [control_failures.play(model, env, 0, False)]
+    env.close()
+    figures = control_failures.pull_figures(model, episodes, starts=16, samples=4)
+    assert 0.0 < figures["level0/pull_critic_share"] < 1.0
+    assert -1.0 <= figures["level0/pull_paths_corr"] <= 1.0
+    # critics whose values do not depend on the state pull on nothing: the whole pull comes through the rewards
+    for critic in model.policy.hierarchy.levels[0].actor_critic.critics.values():
+        monkeypatch.setattr(critic, "value", lambda feat, detach_params=False: feat.sum(-1) * 0.0)
+    flat = control_failures.pull_figures(model, episodes, starts=16, samples=4)
+    assert flat["level0/pull_critic_share"] == 0.0
+    assert flat["level0/pull_obs_r2"] == pytest.approx(flat["level0/pull_reward_obs_r2"])

@@ -93,6 +93,39 @@ def test_update_budget_carries_fractions_of_updates():
     assert model.level_updates()[0] == done + int(before + 0.75)
 
 
+@pytest.mark.parametrize("hierarchical", [True, False])
+def test_world_model_updates_train_world_models_on_batches_of_their_own(hierarchical, monkeypatch):
+    overrides = {**TINY_OVERRIDES, "world_model_updates": 3, "hierarchical_world_models": hierarchical}
+    model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(config_overrides=overrides, train_ratio=16.0))
+    model.learn(40)
+    levels = model.policy.hierarchy.levels
+    with_world_model = range(2 if hierarchical else 1)
+    steps: dict[int, list] = {i: [] for i in with_world_model}
+    imagined: dict[int, int] = {i: 0 for i in with_world_model}
+    for i in with_world_model:
+        world_model_step, imagine = levels[i].world_model_step, levels[i].imagine
+
+        def spy(batch, context, i=i, world_model_step=world_model_step):
+            steps[i].append(batch.observations)
+            return world_model_step(batch, context)
+
+        def counted(*args, i=i, imagine=imagine, **kwargs):
+            imagined[i] += 1
+            return imagine(*args, **kwargs)
+
+        monkeypatch.setattr(levels[i], "world_model_step", spy)
+        monkeypatch.setattr(levels[i], "imagine", counted)
+    before = model.level_updates()
+    model.learn(40, reset_num_timesteps=False)
+    updates = [after - b for after, b in zip(model.level_updates(), before, strict=True)]
+    assert updates[0] == 40 * 16 // (2 * 8)
+    assert len(steps[0]) == 3 * updates[0] and imagined[0] == (updates[0] if hierarchical else 0)
+    if hierarchical:
+        assert updates[1] > 0 and len(steps[1]) == 3 * updates[1] and imagined[1] == updates[1]
+    first, second, third = steps[0][:3]
+    assert not th.equal(first, second) and not th.equal(second, third), "every update draws a batch of its own"
+
+
 def test_multi_env_and_progress_bar():
     env = make_vec_env("CartPole-v1", n_envs=3, seed=0)
     model = HIEROS("MlpPolicy", env, **tiny_kwargs())

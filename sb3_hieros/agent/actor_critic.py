@@ -26,6 +26,7 @@ from torch import nn
 from torch.func import functional_call
 
 from sb3_hieros.agent.returns import ReturnNormalizer, cumulative_discount, lambda_returns
+from sb3_hieros.config import VALUE_GRADIENTS
 from sb3_hieros.nn.distributions import (
     BoundedNormal,
     OneHotCategoricalST,
@@ -345,10 +346,18 @@ class ActorCritic(nn.Module):
 
     * ``gradient="reinforce"`` (default for discrete): ``-w_t (log pi(a_t|s_t) sg(A_t) + eta H_t)``.
     * ``gradient="dynamics"`` (default for box): ``-w_t (A_t + eta H_t)``, where A_t carries gradients back through
-      the rewards, values and features to the (reparameterised) actions. The caller must build ``feats`` and
-      ``rewards`` differentiably from the imagined actions; critic parameters get no gradient from this loss, but
-      whatever produced ``feats`` / ``rewards`` (the world model) does: step only the actor's optimiser with it and
-      zero the other gradients before their own backward.
+      the rewards, values and features to the (reparameterised) actions; ``value_gradient`` says which values do:
+      ``"all"`` (DreamerV3's code) the values inside the lambda-returns and the baseline v^k(s_t). The baseline's
+      gradient changes the objective, not only its variance: the actor is also paid for reaching states whose
+      imagined return exceeds the critic's estimate. Summed over t with the weights w_t (continues 1), the value of an
+      intermediate imagined state s_k then enters with the net weight ``-(gamma lambda)^k`` and that of s_H with
+      ``gamma^H (1 - lambda^H) / (1 - lambda)``: weights that nearly cancel, so the value path pulls along the
+      differences of the critic's gradients between the states of a rollout. ``"returns"`` holds the baseline fixed
+      (the actor climbs the lambda-returns, DreamerV2's dynamics objective); ``"none"`` holds every value fixed (the
+      gradient comes through the imagined rewards of the horizon alone). The caller must build
+      ``feats`` and ``rewards`` differentiably from the imagined actions; critic parameters get no gradient from
+      this loss, but whatever produced ``feats`` / ``rewards`` (the world model) does: step only the actor's
+      optimiser with it and zero the other gradients before their own backward.
 
     with eta = ``entropy_coef`` and w_t the cumulative discount. Critic k minimises the two-hot NLL of R^k_t plus the
     slow-critic regulariser, weighted by w_t.
@@ -375,6 +384,8 @@ class ActorCritic(nn.Module):
     :param reinforce_advantage: ``"normalized"`` (default, the A_t above) or ``"raw"``: REINFORCE uses the reference
         code's unnormalised weighted average ``sum_k alpha_k (R^k_t - v^k(s_t)) / sum_k alpha_k`` (reference-compat
         switch). Dynamics backpropagation always uses A_t.
+    :param value_gradient: with ``gradient="dynamics"``, the values that pass gradient: ``"all"``, ``"returns"``
+        or ``"none"`` (see above)
     """
 
     def __init__(
@@ -399,8 +410,12 @@ class ActorCritic(nn.Module):
         retnorm_min_scale: float = 1.0,
         reinforce_advantage: str = "normalized",
         return_normalization: str = "combined",
+        value_gradient: str = "all",
     ) -> None:
         super().__init__()
+        if value_gradient not in VALUE_GRADIENTS:
+            raise ValueError(f"value_gradient must be one of {VALUE_GRADIENTS}, got {value_gradient!r}")
+        self.value_gradient = value_gradient
         if reinforce_advantage not in ("normalized", "raw"):
             raise ValueError(f"reinforce_advantage must be 'normalized' or 'raw', got {reinforce_advantage!r}")
         self.reinforce_advantage = reinforce_advantage
@@ -548,7 +563,7 @@ class ActorCritic(nn.Module):
         for name, alpha in self.reward_weights.items():
             critic = self.critics[name]
             fast: TwoHotSymlog | None = None
-            if dynamics:
+            if dynamics and self.value_gradient != "none":
                 values = critic.value(feats, detach_params=True)  # (H+1, *B), differentiable w.r.t. feats
             else:
                 # one forward pass of the fast critic serves the returns (detached) and its own loss (s_0..s_{H-1})
@@ -558,10 +573,11 @@ class ActorCritic(nn.Module):
             returns = lambda_returns(
                 rewards[name][1:], values[:-1], continues[1:], values[-1], self.discount, self.lambda_
             )  # (H, *B)
-            raw_advantage = raw_advantage + alpha * (returns - values[:-1])
+            baseline = values[:-1] if self.value_gradient == "all" else values[:-1].detach()
+            raw_advantage = raw_advantage + alpha * (returns - baseline)
             if self.return_normalization == "per_term":
                 _, scale = self.normalizers[name](returns, update=update_normalizers)
-                advantage = advantage + alpha * (returns - values[:-1]) / scale
+                advantage = advantage + alpha * (returns - baseline) / scale
             else:
                 mixed_returns = mixed_returns + alpha * returns.detach()
                 scale = self.normalizers["combined"].scale()  # this batch's update follows below

@@ -444,6 +444,18 @@ class Hierarchy(nn.Module):
                 updates[i] = self.levels[i].train_step(batch, self.replan_of(i))
         return updates
 
+    def world_model_updates(self, batches: Sequence[SequenceSamples | None]) -> list[LevelUpdate | None]:
+        """World-model updates without imagination (:meth:`Subactor.world_model_update`) for every level with a batch.
+
+        :param batches: per level with a replay, a batch of its replay or None
+        :return: per level, what its update returned, or None
+        """
+        updates: list[LevelUpdate | None] = [None] * self.n_levels
+        for i, batch in enumerate(batches):
+            if batch is not None:
+                updates[i] = self.levels[i].world_model_update(batch)
+        return updates
+
     def replan_of(self, level: int) -> Replan | None:
         """The subgoal updates of the levels above ``level`` during its imagination, or None (thesis default, or the
         top level).

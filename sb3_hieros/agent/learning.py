@@ -73,6 +73,7 @@ def level_actor_critic(
         slow_fraction=ac.slow_critic_fraction,
         reinforce_advantage=config.reference.reinforce_advantage,
         return_normalization=ac.return_normalization,
+        value_gradient=ac.value_gradient,
     )
 
 

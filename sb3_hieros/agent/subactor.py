@@ -387,6 +387,18 @@ class Subactor(LevelLearner):
         metrics["nonfinite/world_model"] = metrics.pop("wm/nonfinite")
         return metrics, post, None if context is None else wm.pack_context(post)
 
+    def world_model_update(self, samples: SequenceSamples) -> LevelUpdate:
+        """A world-model update without imagination (``HierosConfig.world_model_updates`` > 1): step 1 of
+        :meth:`train_step` on a batch of its own.
+
+        :param samples: a batch of this level's replay (B, T, ...), as for :meth:`train_step`
+        :return: the metrics ``wm/*`` and ``nonfinite/world_model`` and the packed posterior states for the replay
+            context
+        """
+        batch, _ = self.training_batch(samples)
+        tensors, _, context = self.world_model_step(batch, samples.context)
+        return LevelUpdate(metric_floats(tensors), context)
+
     def imagine(self, start: LatentState, codes: th.Tensor | None, replan: Replan | None = None) -> Imagination:
         """Imagination of ``imag_horizon`` steps with the current actor from ``start`` (thesis 4.4.3, Algorithm 2
         line 7), through :meth:`WorldModel.rollout`.
