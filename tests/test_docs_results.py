@@ -32,6 +32,20 @@ CHANGE_SUITES = {
         "--tasks", "cartpole-balance-proprio", "cartpole-balance-pixels", "CartPole-v1", "Pendulum-v1",
         "--hieros-kwargs", '{"config_overrides": {"world_model": {"deter_from": "gru"}}}',
     ],
+    "value_gradient_returns": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs",
+        '{"config_overrides": {"world_model": {"deter_from": "gru"}, "actor_critic": {"value_gradient": "returns"}}}',
+    ],
+    "value_gradient_none": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs",
+        '{"config_overrides": {"world_model": {"deter_from": "gru"}, "actor_critic": {"value_gradient": "none"}}}',
+    ],
+    "world_model_updates": [
+        "--tasks", "cartpole-balance-proprio", "CartPole-v1", "Pendulum-v1",
+        "--hieros-kwargs", '{"config_overrides": {"world_model": {"deter_from": "gru"}, "world_model_updates": 4}}',
+    ],
 }  # fmt: skip
 
 
