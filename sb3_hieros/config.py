@@ -18,6 +18,7 @@ from typing import Any
 
 WORLD_MODEL_KINDS = ("s5", "rssm")
 DETER_SOURCES = ("state", "output", "gru")
+ACTION_INPUTS = ("joint", "separate")
 IMAG_GRADIENTS = ("auto", "reinforce", "dynamics")
 HIGHER_LEVEL_INPUTS = ("all", "last")
 EXTRINSIC_REWARD_LEVELS = ("all", "top")
@@ -87,6 +88,10 @@ class WorldModelConfig:
     :param deter_from: ``"state"``: h_t read out from the S5 internal states (thesis 5.3.5, default);
         ``"output"``: h_t from the stack output m_t; ``"gru"``: h_t = GRU(h_{t-1}, m_t), a DreamerV3 GRU cell on the
         stack output, and the prior reads h_t instead of m_t (not in the thesis; see the continuous-control results)
+    :param action_input: how z_{t-1} and a_{t-1} enter the sequence model: ``"joint"``: one Linear over ``[z, a]``,
+        then LayerNorm and SiLU (thesis, first DreamerV3); ``"separate"``: z and a each through their own Linear,
+        LayerNorm and SiLU, concatenated (half the width each), so the action keeps a normalised share of the input
+        however large z is (later DreamerV3 releases; not in the thesis)
     :param stoch_groups: number of categorical latents in z_t
     :param stoch_classes: classes per categorical latent
     :param hidden: width of the prior/posterior/input layers
@@ -114,6 +119,7 @@ class WorldModelConfig:
     dropout: float = 0.1
     deter_dim: int = 256
     deter_from: str = "state"
+    action_input: str = "joint"
     stoch_groups: int = 32
     stoch_classes: int = 32
     hidden: int = 256
@@ -136,6 +142,7 @@ class WorldModelConfig:
         _check_types(self)
         _check_choice(self, "kind", WORLD_MODEL_KINDS)
         _check_choice(self, "deter_from", DETER_SOURCES)
+        _check_choice(self, "action_input", ACTION_INPUTS)
         _check_positive(
             self,
             "s5_layers",

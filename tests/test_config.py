@@ -49,6 +49,7 @@ def test_replace_nested_and_validates():
     [
         ({"kind": "lstm"}, "kind"),
         ({"deter_from": "both"}, "deter_from"),
+        ({"action_input": "split"}, r"action_input must be one of \('joint', 'separate'\), got 'split'"),
         ({"s5_state_dim": 100, "s5_hippo_blocks": 3}, "divisible"),
         ({"dropout": 1.5}, "dropout"),
         ({"lr": -1.0}, "lr"),

@@ -36,7 +36,7 @@ class RSSMWorldModel(WorldModel):
 
     def _build_sequence_model(self, config: WorldModelConfig, compile: bool) -> None:
         c = config
-        self.inp = InputLayer(self.stoch_dim, self.action_dim, c.hidden)
+        self.inp = InputLayer(self.stoch_dim, self.action_dim, c.hidden, c.action_input == "separate")
         self.gru = LayerNormGRUCell(c.hidden, self.deter_dim)
         self.prior_net = MLP(self.deter_dim, self.stoch_dim, c.hidden, layers=1)
         # posterior MLP on [h_t, e_t], split into halves so that the embedding half leaves the loop
@@ -61,12 +61,12 @@ class RSSMWorldModel(WorldModel):
         """One loop step: GRU update and raw posterior logits (the part that cannot leave the loop).
 
         :param stoch: (B, G*K) z_{t-1} (already zeroed where reset)
-        :param action_pre: (B, hidden) ``W_a a_{t-1}``
+        :param action_pre: (B, .) the action's part of the input, ``InputLayer.action_features(a_{t-1})``
         :param deter: (B, D) h_{t-1} (already zeroed where reset)
         :param embed_pre: (B, hidden) embedding half of the posterior layer
         :return: h_t (B, D) and raw posterior logits (B, G*K)
         """
-        x = self.inp.combine(self.inp.stoch(stoch) + action_pre)
+        x = self.inp.join(stoch, action_pre)
         deter = self.gru(x, deter)
         post_raw = self.post_out(F.silu(self.post_norm(self.post_deter(deter) + embed_pre)))
         return deter, post_raw
@@ -80,7 +80,7 @@ class RSSMWorldModel(WorldModel):
         keep = (~is_first).unsqueeze(-1).to(actions.dtype)  # (B, T, 1)
         # hoisted out of the loop (under a bf16 autocast, these run in bf16 and are taken back to float32)
         embed_pre = self.post_embed(embed).float()  # (B, T, hidden)
-        action_pre = self.inp.action(actions * keep).float()  # (B, T, hidden)
+        action_pre = self.inp.action_features(actions * keep).float()  # (B, T, .)
         stoch, deter = state.stoch, state.deter
         stochs, deters, logits = [], [], []
         with without_autocast(embed.device.type):  # the recurrent state stays in float32
@@ -103,7 +103,9 @@ class RSSMWorldModel(WorldModel):
         keep = (~is_first).unsqueeze(-1).to(action.dtype)
         embed = self._embed(obs, (batch,))
         embed_pre = self.post_embed(embed)
-        deter, post_raw = self._cell(state.stoch * keep, self.inp.action(action * keep), state.deter * keep, embed_pre)
+        deter, post_raw = self._cell(
+            state.stoch * keep, self.inp.action_features(action * keep), state.deter * keep, embed_pre
+        )
         stoch, post_logits = self._draw(post_raw, deterministic)
         prior_raw = self.prior_net(deter)
         return LatentState(stoch, deter, deter, post_logits, self._normalise(prior_raw))

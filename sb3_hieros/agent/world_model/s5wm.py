@@ -39,7 +39,7 @@ class S5WorldModel(WorldModel):
 
     def _build_sequence_model(self, config: WorldModelConfig, compile: bool) -> None:
         c = config
-        self.inp = InputLayer(self.stoch_dim, self.action_dim, c.s5_model_dim)
+        self.inp = InputLayer(self.stoch_dim, self.action_dim, c.s5_model_dim, c.action_input == "separate")
         self.sequence_model = S5Stack(c.s5_layers, c.s5_model_dim, c.s5_state_dim, c.s5_hippo_blocks, c.dropout)
         self._deter_in_context = c.deter_from == "gru"
         if self._deter_in_context:
