@@ -46,6 +46,16 @@ CHANGE_SUITES = {
         "--tasks", "cartpole-balance-proprio", "CartPole-v1", "Pendulum-v1",
         "--hieros-kwargs", '{"config_overrides": {"world_model": {"deter_from": "gru"}, "world_model_updates": 4}}',
     ],
+    "action_input_separate": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs",
+        '{"config_overrides": {"world_model": {"deter_from": "gru", "action_input": "separate"}, '
+        '"world_model_updates": 4}}',
+    ],
+    "world_model_updates_8": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs", '{"config_overrides": {"world_model": {"deter_from": "gru"}, "world_model_updates": 8}}',
+    ],
 }  # fmt: skip
 
 
