@@ -48,7 +48,7 @@ class InputLayer(nn.Module):
         :param action: (..., action_dim)
         :return: (..., out_dim) joint, (..., out_dim // 2) separate
         """
-        pre = self.action(action)
+        pre = F.linear(action, self.action.weight, self.action.bias)
         if self.action_norm is None:
             return pre
         return F.silu(layer_norm(self.action_norm, pre))
