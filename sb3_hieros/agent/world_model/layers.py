@@ -32,7 +32,6 @@ class InputLayer(nn.Module):
         super().__init__()
         if separate and out_dim < 2:
             raise ValueError(f"InputLayer with separate=True needs out_dim >= 2, got {out_dim}")
-        self.separate = separate
         action_width = out_dim // 2 if separate else out_dim
         stoch_width = out_dim - action_width if separate else out_dim
         self.stoch = nn.Linear(stoch_dim, stoch_width, bias=False)
