@@ -4,7 +4,7 @@ The ``python`` code blocks of one page run in order in one namespace (a page rea
 working directory, with two changes that keep them cheap and leave their calls as written:
 
 * budgets written with thousands separators (``10_000``, ``100_000``) are divided by 200 (at most 200);
-* every ``HIEROS(...)`` gets the tiny networks of the tests (``hieros_helpers.tiny_kwargs``: small preset,
+* every ``HIEROS(...)`` gets the tiny run of the tests (``hieros_helpers.tiny_kwargs``: small preset, tiny networks,
   20 random steps, a short replay); the example's own ``config_overrides``, ``n_levels`` and other keywords are kept.
 """
 
@@ -15,7 +15,7 @@ import re
 from typing import Any
 
 import pytest
-from hieros_helpers import TINY_OVERRIDES, tiny_kwargs
+from hieros_helpers import tiny_kwargs
 
 from sb3_hieros import HIEROS
 
@@ -54,9 +54,10 @@ def tiny_hieros(monkeypatch):
     def tiny_init(self, policy, env, *args, **kwargs):
         if args or not kwargs.get("_init_setup_model", True):  # HIEROS.load builds the model itself
             return original(self, policy, env, *args, **kwargs)
-        overrides = _merged(TINY_OVERRIDES, kwargs.pop("config_overrides", None) or {})
+        tiny = tiny_kwargs()
+        overrides = _merged(tiny["config_overrides"], kwargs.pop("config_overrides", None) or {})
         given = {key: value for key, value in kwargs.items() if key not in SIZING}
-        return original(self, policy, env, **{**tiny_kwargs(), **given, "config_overrides": overrides})
+        return original(self, policy, env, **{**tiny, **given, "config_overrides": overrides})
 
     monkeypatch.setattr(HIEROS, "__init__", tiny_init)
 
