@@ -18,7 +18,14 @@ run per seed to show. On DMC cartpole-balance from proprioception (action repeat
   action held at +1 and at -1. Per observation entry the regression slope of the model's difference (+1 minus -1)
   onto the environment's (as in :mod:`benchmarks.control_failures`) and the correlation; the same for the reward;
   for prior modes (``mode``) and for the mean of 32 sampled rollouts (``sampled``). The observation entries are the
-  cart position, the pole angle's cosine and sine, the cart velocity and the pole's angular velocity.
+  cart position, the pole angle's cosine and sine, the cart velocity and the pole's angular velocity;
+* **state resolution**: per observation entry, the root-mean-square error of the observation decoded from the
+  posterior mode on the training episodes (``{entry}_recon_rmse``; the actor acts on the same state) against the
+  typical change one held action makes to that entry in one agent step on the held-out episodes
+  (``{entry}_step_effect``: half the mean absolute +1 minus -1 difference after the first driven step). Their ratio,
+  ``{entry}_resolution``, above 1 means the world state does not resolve what one action does. The same error over
+  the states a balancing policy keeps (``{entry}_recon_rmse_upright``: pole within about 25 degrees of upright,
+  ``cos > 0.9``, turning slower than 2 rad/s) and the spread of the entry there (``{entry}_std_upright``).
 
 Run from the repo root: ``python -m benchmarks.action_response [--kinds s5,rssm] [--seeds 0,1] [--updates N]
 [--data feedback|one-policy|uniform] [--wm-overrides JSON]``. The last lines print every figure as
@@ -57,6 +64,9 @@ KINDS = ("s5", "rssm")
 RESPONSE_STEPS = 5
 STRIDE = 25
 CONTEXT_EVERY = 100
+#: The states a balancing policy keeps: pole cosine above this and angular velocity below the next (rad/s).
+UPRIGHT_COS = 0.9
+UPRIGHT_ANGULAR_VELOCITY = 2.0
 
 
 def feedback_at_bounds(obs: np.ndarray, w: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -155,6 +165,45 @@ def train(model: WorldModel, data: dict[str, th.Tensor], updates: int, seed: int
 
 
 @th.no_grad()
+def state_resolution(
+    model: WorldModel, data: dict[str, th.Tensor], copies: Sequence[tuple[int, int, Any]]
+) -> dict[str, float]:
+    """How precisely the posterior state holds the observation, against what one action changes in one step.
+
+    :param data: episodes whose observations are decoded from their posterior modes
+    :param copies: environment copies (:func:`collect` with ``branch=True``) at which one step's action effect is taken
+    :return: ``{entry}_recon_rmse``, ``{entry}_step_effect`` and their ratio ``{entry}_resolution`` per observation
+        entry; ``{entry}_recon_rmse_upright`` and ``{entry}_std_upright`` over the upright states (NaN if none)
+    """
+    post, _ = model.observe(data["obs"], data["prev_action"], data["is_first"], deterministic=True)
+    obs = data["obs"].double().reshape(-1, len(OBS_NAMES))  # (E * T, 5)
+    error = model.decode(post).double().reshape(-1, len(OBS_NAMES)) - obs
+    rmse = error.pow(2).mean(0).sqrt().numpy()
+    upright = (obs[:, OBS_NAMES.index("pole_cos")] > UPRIGHT_COS) & (
+        obs[:, OBS_NAMES.index("pole_angular_velocity")].abs() < UPRIGHT_ANGULAR_VELOCITY
+    )
+    rmse_upright = error[upright].pow(2).mean(0).sqrt().numpy()
+    std_upright = obs[upright].std(0).numpy()
+    effects = []
+    for _, _, env in copies:
+        first = []
+        for sign in (1.0, -1.0):
+            env_copy = copy.deepcopy(env)
+            first.append(env_copy.step(np.array([sign], np.float32))[0])
+            env_copy.close()
+        effects.append(np.abs(first[0] - first[1]) / 2)
+    effect = np.mean(effects, 0)  # (5,)
+    out = {}
+    for d, name in enumerate(OBS_NAMES):
+        out[f"{name}_recon_rmse"] = float(rmse[d])
+        out[f"{name}_step_effect"] = float(effect[d])
+        out[f"{name}_resolution"] = float(rmse[d] / effect[d]) if effect[d] > 0 else float("nan")
+        out[f"{name}_recon_rmse_upright"] = float(rmse_upright[d])
+        out[f"{name}_std_upright"] = float(std_upright[d])
+    return out
+
+
+@th.no_grad()
 def action_response(
     model: WorldModel, data: dict[str, th.Tensor], copies: Sequence[tuple[int, int, Any]], samples: int
 ) -> dict[str, float]:
@@ -221,12 +270,17 @@ def run(
             figures.update({name: metrics.get(name, float("nan")) for name in ("obs_loss", "kl", "post_entropy")})
             for mode, samples in (("mode", 0), ("sampled", 32)):
                 figures.update({f"{mode}_{k}": v for k, v in action_response(model, held_out, copies, samples).items()})
+            figures.update(state_resolution(model, data, copies))
             print(
                 f"{kind} seed {seed}: {updates} updates in {seconds:.0f} s; pole angular velocity slope "
                 f"{figures['mode_pole_angular_velocity_slope']:.2f} (corr "
                 f"{figures['mode_pole_angular_velocity_corr']:.2f}), cart velocity "
                 f"{figures['mode_cart_velocity_slope']:.2f}, reward {figures['mode_reward_slope']:.2f} "
-                f"(corr {figures['mode_reward_corr']:.2f})",
+                f"(corr {figures['mode_reward_corr']:.2f}); resolution of the pole angular velocity "
+                f"{figures['pole_angular_velocity_resolution']:.2f}, cart velocity "
+                f"{figures['cart_velocity_resolution']:.2f}; upright, the pole angular velocity's error "
+                f"{figures['pole_angular_velocity_recon_rmse_upright']:.2f} against its spread "
+                f"{figures['pole_angular_velocity_std_upright']:.2f}",
                 flush=True,
             )
             results.update({f"{kind}/{seed}/{k}": v for k, v in figures.items()})

@@ -65,6 +65,14 @@ def test_tiny_run_reports_every_figure(capsys):
             assert f"s5/0/{mode}_{name}_slope" in results
             assert f"s5/0/{mode}_{name}_corr" in results
     assert math.isfinite(results["s5/0/mode_pole_angular_velocity_slope"])
+    for name in bench.OBS_NAMES:
+        rmse, effect = results[f"s5/0/{name}_recon_rmse"], results[f"s5/0/{name}_step_effect"]
+        assert rmse > 0 and effect >= 0
+        if effect > 0:
+            assert results[f"s5/0/{name}_resolution"] == pytest.approx(rmse / effect)
+    assert results["s5/0/cart_velocity_step_effect"] > 0  # the held action moves the cart within one step
+    assert results["s5/0/pole_angular_velocity_recon_rmse_upright"] > 0  # every episode starts upright
+    assert results["s5/0/pole_cos_std_upright"] >= 0
     assert results["s5/0/kl"] >= 0 and results["s5/0/post_entropy"] > 0 and results["s5/0/obs_loss"] > 0
     assert "s5 seed 0: 2 updates" in capsys.readouterr().out
 
