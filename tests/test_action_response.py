@@ -58,7 +58,7 @@ def test_held_out_copies_replay_the_recorded_episode():
 
 
 def test_tiny_run_reports_every_figure(capsys):
-    results = bench.main(["--kinds", "s5", "--updates", "2", "--episodes", "1"])
+    results = bench.main(["--kinds", "s5", "--updates", "2", "--episodes", "2", "--data", "balancing"])
     names = [*bench.OBS_NAMES, "reward"]
     for mode in ("mode", "sampled"):
         for name in names:
@@ -74,7 +74,9 @@ def test_tiny_run_reports_every_figure(capsys):
     assert results["s5/0/pole_angular_velocity_recon_rmse_upright"] > 0  # every episode starts upright
     assert results["s5/0/pole_cos_std_upright"] >= 0
     assert results["s5/0/kl"] >= 0 and results["s5/0/post_entropy"] > 0 and results["s5/0/obs_loss"] > 0
-    assert "s5 seed 0: 2 updates" in capsys.readouterr().out
+    assert results["data/0/return_mean"] > 800  # one balancing episode besides the random one
+    out = capsys.readouterr().out
+    assert "s5 seed 0: 2 updates" in out and "1 balancing episodes, return" in out
 
 
 @pytest.mark.parametrize(("kind", "shared"), [("one_policy", True), ("feedback", False)])
@@ -90,3 +92,11 @@ def test_one_policy_data_uses_one_feedback_gain_for_every_episode(monkeypatch, k
     data, _ = bench.collect([kind, kind], seed=4, branch=False)
     assert data["obs"].shape[0] == 2
     assert (len(set(gains)) == 1) is shared
+
+
+def test_balancing_data_keeps_the_pole_up():
+    data, _ = bench.collect(["balancing", "one_policy"], seed=0, branch=False)
+    upright = data["obs"][..., bench.OBS_NAMES.index("pole_cos")] > bench.UPRIGHT_COS
+    returns = data["reward"].sum(1)
+    assert bool(upright[0].all()) and returns[0] > 800  # the noisy linear feedback balances
+    assert upright[1].float().mean() < 0.9 and returns[1] < returns[0]  # the bang-bang feedback does not
