@@ -70,7 +70,7 @@ CONTEXT_EVERY = 100
 UPRIGHT_COS = 0.9
 UPRIGHT_ANGULAR_VELOCITY = 2.0
 #: Gains of :func:`balancing_feedback` on (cart position, pole cos, pole sin, cart velocity, pole angular velocity):
-#: without the noise this feedback scores about 1000 (the run prints the return of its episodes).
+#: with its noise it keeps the pole upright (the run prints the return of its episodes).
 BALANCING_GAINS = np.array([0.3, 0.0, 3.0, 0.3, 1.0])
 
 
