@@ -43,7 +43,7 @@ CHANGE_SUITES = {
         '{"config_overrides": {"world_model": {"deter_from": "gru"}, "actor_critic": {"value_gradient": "none"}}}',
     ],
     "world_model_updates": [
-        "--tasks", "cartpole-balance-proprio", "CartPole-v1", "Pendulum-v1",
+        "--tasks", "cartpole-balance-proprio", "cartpole-balance-pixels", "CartPole-v1", "Pendulum-v1",
         "--hieros-kwargs", '{"config_overrides": {"world_model": {"deter_from": "gru"}, "world_model_updates": 4}}',
     ],
     "action_input_separate": [
