@@ -179,14 +179,30 @@ def train(model: WorldModel, data: dict[str, th.Tensor], updates: int, seed: int
     return metrics
 
 
+def one_step_effect(copies: Sequence[tuple[int, int, Any]]) -> np.ndarray:
+    """Half the mean absolute difference of the observation after one step at +1 and one at -1 (a property of the
+    environment, the same for every model).
+
+    :param copies: environment copies (:func:`collect` with ``branch=True``)
+    :return: (5,) per observation entry
+    """
+    effects = []
+    for _, _, env in copies:
+        first = []
+        for sign in (1.0, -1.0):
+            env_copy = copy.deepcopy(env)
+            first.append(env_copy.step(np.array([sign], np.float32))[0])
+            env_copy.close()
+        effects.append(np.abs(first[0] - first[1]) / 2)
+    return np.mean(effects, 0)
+
+
 @th.no_grad()
-def state_resolution(
-    model: WorldModel, data: dict[str, th.Tensor], copies: Sequence[tuple[int, int, Any]]
-) -> dict[str, float]:
+def state_resolution(model: WorldModel, data: dict[str, th.Tensor], effect: np.ndarray) -> dict[str, float]:
     """How precisely the posterior state holds the observation, against what one action changes in one step.
 
     :param data: episodes whose observations are decoded from their posterior modes
-    :param copies: environment copies (:func:`collect` with ``branch=True``) at which one step's action effect is taken
+    :param effect: (5,) :func:`one_step_effect`
     :return: ``{entry}_recon_rmse``, ``{entry}_step_effect`` and their ratio ``{entry}_resolution`` per observation
         entry; ``{entry}_recon_rmse_upright`` and ``{entry}_std_upright`` over the upright states (NaN if none)
     """
@@ -199,15 +215,6 @@ def state_resolution(
     )
     rmse_upright = error[upright].pow(2).mean(0).sqrt().numpy()
     std_upright = obs[upright].std(0).numpy()
-    effects = []
-    for _, _, env in copies:
-        first = []
-        for sign in (1.0, -1.0):
-            env_copy = copy.deepcopy(env)
-            first.append(env_copy.step(np.array([sign], np.float32))[0])
-            env_copy.close()
-        effects.append(np.abs(first[0] - first[1]) / 2)
-    effect = np.mean(effects, 0)  # (5,)
     out = {}
     for d, name in enumerate(OBS_NAMES):
         out[f"{name}_recon_rmse"] = float(rmse[d])
@@ -271,12 +278,14 @@ def run(
     and ``data/seed/return_mean``, the mean return of the data policy's episodes."""
     results: dict[str, float] = {}
     held_out, copies = collect(["smooth", "small", "uniform"], seed=99, branch=True)
+    effect = one_step_effect(copies)
     for seed in seeds:
         policies = ["uniform"] + [data_kind.replace("-", "_")] * (episodes - 1)
         data, _ = collect(policies, seed=1 + seed, branch=False)
         returns = data["reward"][1:].sum(1)  # the episodes of the data policy (the first is uniformly random)
-        results[f"data/{seed}/return_mean"] = float(returns.mean()) if len(returns) else float("nan")
-        print(f"seed {seed}: {len(returns)} {data_kind} episodes, return {returns.mean():.1f} on average", flush=True)
+        mean_return = float(returns.mean()) if len(returns) else float("nan")
+        results[f"data/{seed}/return_mean"] = mean_return
+        print(f"seed {seed}: {len(returns)} {data_kind} episodes, return {mean_return:.1f} on average", flush=True)
         for kind in kinds:
             th.manual_seed(seed)
             config = dataclasses.replace(get_preset("small").world_model, **{**overrides, "kind": kind})
@@ -289,7 +298,7 @@ def run(
             figures.update({name: metrics.get(name, float("nan")) for name in ("obs_loss", "kl", "post_entropy")})
             for mode, samples in (("mode", 0), ("sampled", 32)):
                 figures.update({f"{mode}_{k}": v for k, v in action_response(model, held_out, copies, samples).items()})
-            figures.update(state_resolution(model, data, copies))
+            figures.update(state_resolution(model, data, effect))
             print(
                 f"{kind} seed {seed}: {updates} updates in {seconds:.0f} s; pole angular velocity slope "
                 f"{figures['mode_pole_angular_velocity_slope']:.2f} (corr "
