@@ -73,8 +73,15 @@ _LIST = [
     Ablation(
         "deter_from_output",
         "5.3.5",
-        "h_t from the S5 stack output instead of the S5 internal states",
+        "h_t from the S5 stack output instead of the S5 internal states (small preset: instead of its GRU state)",
         _fixed({"world_model": {"deter_from": "output"}}),
+    ),
+    Ablation(
+        "deter_from_state",
+        "5.3.5",
+        "h_t read out from the S5 internal states as in the thesis (the counterpart for the small preset, whose h_t "
+        "is a GRU state)",
+        _fixed({"world_model": {"deter_from": "state"}}),
     ),
     Ablation(
         "last_state_only",

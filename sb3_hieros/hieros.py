@@ -72,7 +72,10 @@ __all__ = ["HIEROS"]
 SelfHIEROS = TypeVar("SelfHIEROS", bound="HIEROS")
 
 #: the defaults that have changed since models are saved with their configuration: older saves were trained with these
-DEFAULTS_BEFORE_SAVED_CONFIG: dict[str, Any] = {"actor_critic": {"return_normalization": "per_term"}}
+DEFAULTS_BEFORE_SAVED_CONFIG: dict[str, Any] = {
+    "actor_critic": {"return_normalization": "per_term"},
+    "world_model": {"deter_from": "state"},
+}
 
 
 class HIEROS(OffPolicyAlgorithm):

@@ -59,8 +59,15 @@ def test_registry_covers_every_thesis_ablation_and_resolves_on_both_presets():
     sections = {a.section for a in ABLATIONS.values()}
     assert {f"5.3.{i}" for i in range(1, 13)} <= sections
     assert "reference" in sections
-    # the preset itself: its own depth; the paper preset has the novelty reward, the small one has none
-    same = {("levels_3", "paper"), ("with_novelty", "paper"), ("levels_2", "small"), ("no_novelty", "small")}
+    # the preset itself: its own depth; the paper preset has the novelty reward, the small one has none,
+    # and the thesis' h_t readout, where the small one has a GRU state
+    same = {
+        ("levels_3", "paper"),
+        ("with_novelty", "paper"),
+        ("deter_from_state", "paper"),
+        ("levels_2", "small"),
+        ("no_novelty", "small"),
+    }
     for name in ABLATIONS:
         for preset in ("paper", "small"):
             assert ablation_changes_preset(name, preset) == ((name, preset) not in same), (name, preset)
@@ -181,11 +188,13 @@ def test_rssm_replay_depth_and_deter_switches_change_their_modules():
     for depth in (1, 4):
         model = model_with(n_levels=depth)
         assert len(model.policy.hierarchy.levels) == depth and len(model.level_buffers()) == depth
-    state = model_with().policy.hierarchy.levels[0].world_model
+    # the small preset's h_t is a GRU state; the thesis' readout (paper preset) and the ablation's read the S5 stack
+    state = model_with(world_model={"deter_from": "state"}).policy.hierarchy.levels[0].world_model
     output = model_with(world_model={"deter_from": "output"}).policy.hierarchy.levels[0].world_model
     wm = TINY_OVERRIDES["world_model"]
     assert state.deter_out.in_features == 2 * wm["s5_layers"] * wm["s5_state_dim"]
     assert output.deter_out.in_features == wm["s5_model_dim"]
+    assert hasattr(model_with().policy.hierarchy.levels[0].world_model, "deter_cell")
 
 
 # ---------------------------------------------------------------------------------------------------------- 5.3.6

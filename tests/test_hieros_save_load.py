@@ -78,15 +78,19 @@ def test_load_keeps_the_saved_configuration(trained, monkeypatch, safe):
 
 
 def test_load_of_a_save_without_its_configuration(tmp_path, monkeypatch):
-    # saves made before the configuration was saved with the model were trained with per-term return scales
+    # saves made before the configuration was saved with the model were trained with per-term return scales and
+    # the thesis' h_t readout
     small = config.PRESETS["small"]
-    old_small = lambda: small().replace(actor_critic={"return_normalization": "per_term"})  # noqa: E731
+    old_small = lambda: small().replace(  # noqa: E731
+        actor_critic={"return_normalization": "per_term"}, world_model={"deter_from": "state"}
+    )
     monkeypatch.setitem(config.PRESETS, "small", old_small)
     model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs())
     model.learn(30)
     model.save(tmp_path / "old.zip", exclude=["_config_fields"])
     monkeypatch.setitem(config.PRESETS, "small", small)
-    assert HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs()).config.actor_critic.return_normalization == "combined"
+    now = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs()).config
+    assert now.actor_critic.return_normalization == "combined" and now.world_model.deter_from == "gru"
     loaded = HIEROS.load(tmp_path / "old.zip")
     assert loaded.config == model.config
     _assert_same_params(loaded.get_parameters(), model.get_parameters())
