@@ -7,12 +7,14 @@ from sb3_hieros.agent.actor_critic import (
     Actor,
     ActorCritic,
     Critic,
+    ReplaySequences,
     ReturnNormalizer,
     actor_input,
     actor_input_dim,
     cumulative_discount,
     lambda_returns,
 )
+from sb3_hieros.agent.returns import replay_lambda_returns
 from sb3_hieros.nn.distributions import symlog
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -61,6 +63,31 @@ def test_lambda_returns_bad_shapes():
         lambda_returns(x, x, x, th.zeros(3))
     with pytest.raises(ValueError, match="lambda_"):
         lambda_returns(x, x, x, th.zeros(2), lambda_=1.5)
+
+
+def test_replay_lambda_returns_hand_computed_and_cut_at_episode_starts():
+    # T = 4, gamma = 0.5, lambda = 0.5; rewards[t] = r_t received with s_t, boot[t] = b_t
+    rewards = th.tensor([9.0, 1.0, 2.0, 3.0])
+    boot = th.tensor([10.0, 20.0, 30.0, 40.0])
+    # R_3 = b_3                                     = 40
+    # R_2 = 3 + 0.5 * (0.5 * 40 + 0.5 * 40)         = 23
+    # R_1 = 2 + 0.5 * (0.5 * 30 + 0.5 * 23)         = 15.25
+    # R_0 = 1 + 0.5 * (0.5 * 20 + 0.5 * 15.25)      = 9.8125 (r_0 = 9 is not used)
+    ret, valid = replay_lambda_returns(rewards, th.ones(4), th.zeros(4, dtype=th.bool), boot, 0.5, 0.5)
+    assert th.allclose(ret, th.tensor([9.8125, 15.25, 23.0, 40.0]))
+    assert valid.tolist() == [True, True, True, False]
+    # s_2 starts a new episode: R_1 = b_1 (no target of its own), R_0 = 1 + 0.5 * (0.5 * 20 + 0.5 * 20) = 11
+    first = th.tensor([False, False, True, False])
+    ret, valid = replay_lambda_returns(rewards, th.ones(4), first, boot, 0.5, 0.5)
+    assert th.allclose(ret, th.tensor([11.0, 20.0, 23.0, 40.0]))
+    assert valid.tolist() == [True, False, True, False]
+    # s_2 terminal (c_2 = 0): R_1 = r_2 = 2, R_0 = 1 + 0.5 * (0.5 * 20 + 0.5 * 2) = 6.5
+    ret, _ = replay_lambda_returns(rewards, th.tensor([1.0, 1.0, 0.0, 1.0]), th.zeros(4, dtype=th.bool), boot, 0.5, 0.5)
+    assert th.allclose(ret[:2], th.tensor([6.5, 2.0]))
+    with pytest.raises(ValueError, match="bootstrap must have the shape"):
+        replay_lambda_returns(rewards, th.ones(4), first, boot[:3])
+    with pytest.raises(ValueError, match="T >= 2"):
+        replay_lambda_returns(rewards[:1], th.ones(1), first[:1], boot[:1])
 
 
 def test_cumulative_discount():
@@ -406,3 +433,45 @@ def test_state_dict_contents():
     n_actor = sum(p.numel() for p in ac.actor_parameters())
     assert n_actor == sum(p.numel() for p in ac.actor.parameters())
     assert math.isclose(ac.entropy_coef, 3e-4)
+
+
+def _replay(b=3, t=4, feat_dim=10, terms=("extrinsic",), starts=None):
+    gen = th.Generator().manual_seed(5)
+    feats = th.randn(b, t, feat_dim, generator=gen)
+    rewards = {k: th.zeros(b, t) for k in terms}
+    return ReplaySequences(feats, rewards, th.ones(b, t), th.zeros(b, t, dtype=th.bool), starts)
+
+
+def test_replay_value_loss_bootstraps_with_the_imagined_returns():
+    ac = ActorCritic(10, "box", 2, hidden=16, layers=1, reward_weights={"extrinsic": 1.0}, lambda_=0.0)
+    gamma = ac.discount
+    start_returns = th.arange(12, dtype=th.float32)  # R_0 of the rollout from flat state b * 4 + t
+    # rewards 0 and lambda 0: R_t = gamma * b_{t+1} on the rows t = 0..2 of every sequence
+    _, mean = ac.replay_value_loss("extrinsic", _replay(), start_returns)
+    boot = start_returns.reshape(3, 4)
+    assert th.allclose(mean, gamma * boot[:, 1:].mean())
+    # imagination from half the states: the others are bootstrapped with the critic's value (0 at initialisation)
+    starts = th.tensor([1, 2, 5, 7, 9, 11])
+    _, mean = ac.replay_value_loss("extrinsic", _replay(starts=starts), start_returns[starts])
+    full = th.zeros(12).index_copy(0, starts, start_returns[starts]).reshape(3, 4)
+    assert th.allclose(mean, gamma * full[:, 1:].mean())
+    with pytest.raises(ValueError, match=r"replay\.starts has 6 entries"):
+        ac.replay_value_loss("extrinsic", _replay(starts=starts), start_returns)
+
+
+def test_replay_value_loss_trains_only_the_critics_and_only_when_weighted():
+    feats, actions, rewards, cont = _batch(n=12, terms=("extrinsic",))
+    weights = {"extrinsic": 1.0}
+    grads = {}
+    for scale in (0.0, 0.5):
+        th.manual_seed(0)
+        ac = ActorCritic(10, "discrete", 3, hidden=16, layers=1, reward_weights=weights, replay_value_scale=scale)
+        actor_loss, critic_loss, metrics = ac.loss(feats, actions, rewards, cont, replay=_replay())
+        assert ("extrinsic/replay_critic_loss" in metrics) == (scale > 0)
+        actor_loss.backward(retain_graph=True)
+        assert all(p.grad is None for p in ac.critic_parameters())
+        critic_loss.backward()
+        grads[scale] = [p.grad.clone() for p in ac.critic_parameters()]
+    assert any(not th.allclose(a, b) for a, b in zip(grads[0.0], grads[0.5], strict=True))
+    with pytest.raises(ValueError, match="replay_value_scale must be >= 0"):
+        ActorCritic(10, "discrete", 3, replay_value_scale=-0.1)

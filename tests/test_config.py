@@ -78,6 +78,16 @@ def test_hieros_config_rejects_bad_world_model_updates():
     assert HierosConfig(world_model_updates=4).world_model_updates == 4
 
 
+def test_replay_value_loss_is_checked():
+    small = get_preset("small")
+    assert small.actor_critic.replay_value_loss == 0.0
+    assert small.replace(actor_critic={"replay_value_loss": 0.3}).actor_critic.replay_value_loss == 0.3
+    with pytest.raises(ValueError, match=r"ActorCriticConfig\.replay_value_loss must be >= 0, got -0\.3"):
+        small.replace(actor_critic={"replay_value_loss": -0.3})
+    with pytest.raises(ValueError, match=r"replay_value_loss=0\.3 needs hierarchical_world_models=True"):
+        small.replace(actor_critic={"replay_value_loss": 0.3}, hierarchical_world_models=False)
+
+
 def test_world_model_lr_zero_is_a_frozen_model_and_negative_is_refused():
     assert get_preset("small").replace(world_model={"lr": 0.0}).world_model.lr == 0.0
     with pytest.raises(ValueError, match=r"WorldModelConfig\.lr must be a number >= 0, got -0\.001"):

@@ -354,3 +354,37 @@ def test_training_mode_and_device_shortcuts():
     policy.cpu()
     assert "_cached_device" not in policy.__dict__
     assert policy.device == th.device("cpu")
+
+
+def test_replay_value_loss_trains_every_levels_critics_on_the_replayed_rewards(monkeypatch):
+    from sb3_hieros.agent.subgoal import max_cosine_subgoal_reward
+
+    overrides = {**TINY_OVERRIDES, "actor_critic": {"replay_value_loss": 0.3}, "imag_start_fraction": 0.5}
+    model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs(config_overrides=overrides))
+    level0 = model.policy.hierarchy.levels[0]
+    seen = []
+    replay_sequences = level0.replay_sequences
+
+    def spy(batch, post, subgoals, starts):
+        replay = replay_sequences(batch, post, subgoals, starts)
+        # the subgoal reward of s_t is measured against the subgoal in force at s_{t-1}, when a_{t-1} was chosen
+        with th.no_grad():
+            expected = max_cosine_subgoal_reward(post.deter[:, 1:], level0.autoencoder.decode(subgoals[:, :-1]))
+        seen.append((batch, starts, replay, expected))
+        return replay
+
+    monkeypatch.setattr(level0, "replay_sequences", spy)
+    model.learn(60)
+    logged = model.logger.name_to_value
+    for key in ("level0/critic/extrinsic", "level0/critic/subgoal", "level1/critic/extrinsic"):
+        assert np.isfinite(logged[f"train/{key}_replay_loss"])
+    assert seen
+    batch, starts, replay, expected = seen[-1]
+    b, t = batch.rewards.shape
+    assert replay.feats.shape[:2] == (b, t) and starts.shape == (b * t // 2,)
+    assert th.equal(replay.rewards["extrinsic"], batch.rewards)
+    assert th.equal(replay.is_first, batch.is_first)
+    assert th.allclose(replay.rewards["subgoal"][:, 1:], expected) and not replay.rewards["subgoal"][:, 0].any()
+    plain = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs())
+    plain.learn(60)
+    assert not any("replay_loss" in key for key in plain.logger.name_to_value)

@@ -19,13 +19,13 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Collection, Iterator, Mapping
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import torch as th
 from torch import nn
 from torch.func import functional_call
 
-from sb3_hieros.agent.returns import ReturnNormalizer, cumulative_discount, lambda_returns
+from sb3_hieros.agent.returns import ReturnNormalizer, cumulative_discount, lambda_returns, replay_lambda_returns
 from sb3_hieros.config import VALUE_GRADIENTS
 from sb3_hieros.nn.distributions import (
     BoundedNormal,
@@ -323,6 +323,24 @@ class Critic(nn.Module):
 # --------------------------------------------------------------------------------------------------------------------
 
 
+class ReplaySequences(NamedTuple):
+    """One level's replayed sequences as its critics see them, for the replay value loss (batch-major, as replayed).
+
+    :param feats: (B, T, F) actor / critic inputs of the posterior states s_t
+    :param rewards: term -> (B, T), ``rewards[k][:, t]`` = r^k received with s_t (index 0 unused); every active term
+    :param continues: (B, T) c_t = 1 - is_terminal
+    :param is_first: (B, T) bool, episode starts
+    :param starts: (N,) flat indices ``b * T + t`` of the states the imagination started from, in the order of its
+        rollouts, or None when it started from every state in that order
+    """
+
+    feats: th.Tensor
+    rewards: Mapping[str, th.Tensor]
+    continues: th.Tensor
+    is_first: th.Tensor
+    starts: th.Tensor | None = None
+
+
 class ActorCritic(nn.Module):
     """One actor and one critic per active reward term (thesis 4.3.2), trained on imagined trajectories.
 
@@ -386,6 +404,8 @@ class ActorCritic(nn.Module):
         switch). Dynamics backpropagation always uses A_t.
     :param value_gradient: with ``gradient="dynamics"``, the values that pass gradient: ``"all"``, ``"returns"``
         or ``"none"`` (see above)
+    :param replay_value_scale: weight of the replay value loss (:meth:`replay_value_loss`; DreamerV3's later
+        releases: 0.3), 0 to train the critics on imagination alone (the thesis)
     """
 
     def __init__(
@@ -411,8 +431,12 @@ class ActorCritic(nn.Module):
         reinforce_advantage: str = "normalized",
         return_normalization: str = "combined",
         value_gradient: str = "all",
+        replay_value_scale: float = 0.0,
     ) -> None:
         super().__init__()
+        if replay_value_scale < 0.0:
+            raise ValueError(f"replay_value_scale must be >= 0, got {replay_value_scale}")
+        self.replay_value_scale = replay_value_scale
         if value_gradient not in VALUE_GRADIENTS:
             raise ValueError(f"value_gradient must be one of {VALUE_GRADIENTS}, got {value_gradient!r}")
         self.value_gradient = value_gradient
@@ -524,6 +548,52 @@ class ActorCritic(nn.Module):
         if weights is not None and weights.shape != states:
             raise ValueError(f"weights must have shape (H+1, *B) = {tuple(states)}, got {tuple(weights.shape)}")
 
+    def replay_value_loss(
+        self, term: str, replay: ReplaySequences, start_returns: th.Tensor
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """Critic ``term``'s two-hot NLL (with the slow-critic regulariser) of the replay lambda-returns of
+        :func:`~sb3_hieros.agent.returns.replay_lambda_returns` on the replayed states (DreamerV3's replay value loss).
+
+        The thesis and DreamerV3's first release train the critics on imagined states only, whose rewards and
+        continues come from the world model. This loss grounds them in what the environment returned: along each
+        replayed sequence the returns follow the recorded rewards, bootstrapped at every step with the imagined
+        return R_0 of the rollout that started from that state, or, for states the imagination did not start from
+        (``imag_start_fraction`` < 1), with the critic's own value. Rows whose next state starts a new episode, and
+        the last row, get weight 0.
+
+        :param term: an active reward term
+        :param replay: the replayed sequences
+        :param start_returns: (N,) the imagined returns R_0 of the rollouts, in the order of ``replay.starts``
+        :return: (scalar loss, mean replay return over the weighted rows, detached)
+        """
+        critic = self.critics[term]
+        feats = replay.feats.detach()  # (B, T, F)
+        batch = feats.shape[:2]
+        dist = critic(feats)  # (B, T)
+        boot = dist.mean.detach().reshape(-1)  # (B*T,)
+        start_returns = start_returns.detach().to(boot.dtype).reshape(-1)
+        if replay.starts is None:
+            if start_returns.shape != boot.shape:
+                raise ValueError(f"start_returns must have {boot.numel()} entries, got {start_returns.numel()}")
+            boot = start_returns
+        else:
+            if replay.starts.shape != start_returns.shape:
+                raise ValueError(
+                    f"replay.starts has {replay.starts.numel()} entries, start_returns {start_returns.numel()}"
+                )
+            boot = boot.index_copy(0, replay.starts, start_returns)
+        returns, valid = replay_lambda_returns(
+            replay.rewards[term].transpose(0, 1).to(boot.dtype),
+            replay.continues.transpose(0, 1).to(boot.dtype),
+            replay.is_first.transpose(0, 1),
+            boot.reshape(batch).transpose(0, 1),
+            self.discount,
+            self.lambda_,
+        )  # (T, B)
+        returns, valid = returns.transpose(0, 1), valid.transpose(0, 1).to(returns.dtype)  # (B, T)
+        loss, _ = critic.loss(feats, returns, valid, dist=dist)
+        return loss, (returns * valid).sum() / valid.sum().clamp_min(1.0)
+
     def loss(
         self,
         feats: th.Tensor,
@@ -532,6 +602,7 @@ class ActorCritic(nn.Module):
         continues: th.Tensor,
         weights: th.Tensor | None = None,
         update_normalizers: bool = True,
+        replay: ReplaySequences | None = None,
     ) -> tuple[th.Tensor, th.Tensor, dict[str, th.Tensor]]:
         """Actor and critic losses on one imagined trajectory s_0 .. s_H (time-major).
 
@@ -546,6 +617,8 @@ class ActorCritic(nn.Module):
         :param continues: (H+1, *B) continue probabilities c(s_t); ``continues[0]`` is that of the start state
         :param weights: (H+1, *B) loss weights; default :func:`cumulative_discount` of ``continues``
         :param update_normalizers: update the return normalisers with this batch
+        :param replay: the replayed sequences the imagination started from; with ``replay_value_scale`` > 0 each
+            critic's loss adds that weight times its :meth:`replay_value_loss` on them
         :return: (actor_loss, critic_loss summed over the critics, metrics of detached 0-d tensors)
         """
         self._check_inputs(feats, actions, rewards, continues, weights)
@@ -582,6 +655,11 @@ class ActorCritic(nn.Module):
                 mixed_returns = mixed_returns + alpha * returns.detach()
                 scale = self.normalizers["combined"].scale()  # this batch's update follows below
             c_loss, c_metrics = critic.loss(feats_sg[:-1], returns.detach(), w, dist=fast)
+            if replay is not None and self.replay_value_scale > 0.0:
+                r_loss, r_return = self.replay_value_loss(name, replay, returns[0])
+                c_loss = c_loss + self.replay_value_scale * r_loss
+                metrics[f"{name}/replay_critic_loss"] = r_loss.detach()
+                metrics[f"{name}/replay_return_mean"] = r_return
             critic_loss = critic_loss + c_loss
             metrics[f"{name}/return_mean"] = returns.mean().detach()
             metrics[f"{name}/reward_mean"] = rewards[name][1:].mean().detach()
@@ -618,6 +696,7 @@ __all__ = [
     "Actor",
     "ActorCritic",
     "Critic",
+    "ReplaySequences",
     "ReturnNormalizer",
     "actor_input",
     "actor_input_dim",

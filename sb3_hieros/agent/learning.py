@@ -15,7 +15,7 @@ import torch as th
 from gymnasium import spaces
 from torch import nn
 
-from sb3_hieros.agent.actor_critic import ActorCritic
+from sb3_hieros.agent.actor_critic import ActorCritic, ReplaySequences
 from sb3_hieros.agent.subgoal import SubgoalAutoencoder
 from sb3_hieros.config import HierosConfig
 from sb3_hieros.nn.guard import step_if_finite
@@ -74,6 +74,7 @@ def level_actor_critic(
         reinforce_advantage=config.reference.reinforce_advantage,
         return_normalization=ac.return_normalization,
         value_gradient=ac.value_gradient,
+        replay_value_scale=ac.replay_value_loss,
     )
 
 
@@ -210,6 +211,7 @@ def learn_from_imagination(
     rewards: dict[str, th.Tensor],
     continues: th.Tensor,
     h_all: th.Tensor,
+    replay: ReplaySequences | None = None,
 ) -> dict[str, th.Tensor]:
     """Actor, critic and subgoal-autoencoder steps of one level on its imagined trajectory (Algorithm 2 lines 8-10).
 
@@ -225,8 +227,11 @@ def learn_from_imagination(
     :param rewards: term -> (M+1, N) rewards of s_0..s_M (index 0 unused by the returns)
     :param continues: (M+1, N) continue flags
     :param h_all: (..., D) deterministic states the autoencoder trains on
+    :param replay: the replayed sequences the imagination started from, for the critics' replay value loss
+        (``actor_critic.replay_value_loss`` > 0), or None
     :return: 0-d metric tensors: ``actor/*``, ``critic/*`` (per term ``<term>_loss``, ``<term>_value``,
-        ``<term>_grad_norm``), ``return/<term>``, ``return/<term>_scale``, ``reward/<term>``, ``ae/*`` and
+        ``<term>_grad_norm``, with a replay value loss ``<term>_replay_loss``), ``return/<term>``,
+        ``return/<term>_scale`` (with a replay value loss ``return/<term>_replay``), ``reward/<term>``, ``ae/*`` and
         ``nonfinite/{actor,critic,autoencoder}`` (1.0 where that step was skipped)
     """
     clip = level.config.actor_critic.grad_clip
@@ -234,7 +239,7 @@ def learn_from_imagination(
     out: dict[str, th.Tensor] = {}
     retnorm_state = {k: v.clone() for k, v in ac.normalizers.state_dict().items()}
     with bf16_autocast(level.bf16, feats.device):
-        actor_loss, critic_loss, ac_metrics = ac.loss(feats, actions, rewards, continues)
+        actor_loss, critic_loss, ac_metrics = ac.loss(feats, actions, rewards, continues, replay=replay)
     actor_params = list(ac.actor_parameters())
     level.actor_optimizer.zero_grad(set_to_none=True)
     level.critic_optimizer.zero_grad(set_to_none=True)
@@ -274,6 +279,9 @@ def learn_from_imagination(
         out[f"critic/{name}_value"] = ac_metrics[f"{name}/value_mean"]
         out[f"return/{name}"] = ac_metrics[f"{name}/return_mean"]
         out[f"return/{name}_scale"] = ac_metrics[f"{name}/return_scale"]
+        if f"{name}/replay_critic_loss" in ac_metrics:
+            out[f"critic/{name}_replay_loss"] = ac_metrics[f"{name}/replay_critic_loss"]
+            out[f"return/{name}_replay"] = ac_metrics[f"{name}/replay_return_mean"]
     for name, r in rewards.items():
         out[f"reward/{name}"] = r[1:].detach().mean()
     for key, value in ae_metrics.items():

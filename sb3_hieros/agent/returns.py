@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch as th
 from torch import nn
 
-__all__ = ["ReturnNormalizer", "cumulative_discount", "lambda_returns"]
+__all__ = ["ReturnNormalizer", "cumulative_discount", "lambda_returns", "replay_lambda_returns"]
 
 
 def lambda_returns(
@@ -55,6 +55,51 @@ def lambda_returns(
         last = inputs[t] + disc[t] * lambda_ * last
         returns.append(last)
     return th.stack(returns[::-1], 0)
+
+
+def replay_lambda_returns(
+    rewards: th.Tensor,
+    continues: th.Tensor,
+    is_first: th.Tensor,
+    bootstrap: th.Tensor,
+    discount: float = 0.997,
+    lambda_: float = 0.95,
+) -> tuple[th.Tensor, th.Tensor]:
+    r"""TD(lambda) returns along replayed sequences s_0 .. s_{T-1}, bootstrapped with imagination's returns
+    (DreamerV3's replay value loss; not in the thesis).
+
+    .. math::
+        R_t = r_{t+1} + \gamma c_{t+1} \left[(1 - \lambda) b_{t+1} + \lambda R_{t+1}\right], \qquad R_{T-1} = b_{T-1}
+
+    where b_t is the bootstrap of s_t (DreamerV3: the imagined lambda-return R_0 of a rollout started at s_t). Where
+    s_{t+1} starts a new episode, the sequence is cut: R_t = b_t, and such rows, like the last one, carry no target
+    of their own (``valid`` is False there).
+
+    :param rewards: (T, *B) ``rewards[t]`` = r_t, the reward received with s_t (index 0 unused)
+    :param continues: (T, *B) ``continues[t]`` = c_t, 0 where s_t is terminal
+    :param is_first: (T, *B) bool, episode starts
+    :param bootstrap: (T, *B) b_t
+    :param discount: gamma
+    :param lambda_: lambda in [0, 1]
+    :return: the returns (T, *B) and ``valid`` (T, *B) bool, the rows whose return reaches past their bootstrap
+    """
+    if rewards.dim() < 1 or rewards.shape[0] < 2:
+        raise ValueError(f"rewards must have shape (T, *B) with T >= 2, got {tuple(rewards.shape)}")
+    for name, x in (("continues", continues), ("is_first", is_first), ("bootstrap", bootstrap)):
+        if x.shape != rewards.shape:
+            raise ValueError(f"{name} must have the shape of rewards {tuple(rewards.shape)}, got {tuple(x.shape)}")
+    if not 0.0 <= lambda_ <= 1.0:
+        raise ValueError(f"lambda_ must be in [0, 1], got {lambda_}")
+    linked = ~is_first[1:].bool()  # (T-1, *B): s_t -> s_{t+1} lies within one episode
+    disc = discount * continues[1:]
+    inputs = rewards[1:] + disc * (1.0 - lambda_) * bootstrap[1:]
+    last = bootstrap[-1]
+    returns = [last]
+    for t in reversed(range(rewards.shape[0] - 1)):
+        last = th.where(linked[t], inputs[t] + disc[t] * lambda_ * last, bootstrap[t])
+        returns.append(last)
+    valid = th.cat([linked, th.zeros_like(linked[:1])], 0)
+    return th.stack(returns[::-1], 0), valid
 
 
 def cumulative_discount(continues: th.Tensor, discount: float = 0.997) -> th.Tensor:

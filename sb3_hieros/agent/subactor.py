@@ -28,7 +28,7 @@ import torch as th
 import torch.nn.functional as F
 from gymnasium import spaces
 
-from sb3_hieros.agent.actor_critic import actor_input, actor_input_dim
+from sb3_hieros.agent.actor_critic import ReplaySequences, actor_input, actor_input_dim
 from sb3_hieros.agent.learning import (
     SUBGOAL_SUCCESS_THRESHOLD,
     LevelLearner,
@@ -478,6 +478,34 @@ class Subactor(LevelLearner):
                 rewards["novelty"] = novelty_reward(deter, self.autoencoder)
         return rewards
 
+    @th.no_grad()
+    def replay_sequences(
+        self, batch: SequenceSamples, post: LatentState, subgoals: th.Tensor | None, starts: th.Tensor | None
+    ) -> ReplaySequences:
+        """The replayed posterior states as this level's critics see them, with the rewards of every term recorded
+        along them, for the replay value loss (:meth:`~sb3_hieros.agent.actor_critic.ActorCritic.replay_value_loss`).
+
+        Extrinsic: the replayed rewards; subgoal: the max-cosine reward of s_t against the subgoal in force at
+        s_{t-1}, when a_{t-1} was chosen (as in :meth:`imagined_rewards`); novelty: the autoencoder's error of h_t.
+
+        :param batch: the batch from :meth:`training_batch` (B, T, ...)
+        :param post: its posterior states (B, T)
+        :param subgoals: (B, T, n_cat * n_classes) subgoals in force, or None at the top level
+        :param starts: (N,) flat indices of the imagination's start states, or None for all
+        :return: the sequences, batch-major
+        """
+        target = goal_feat = None
+        if subgoals is not None:
+            target = self.autoencoder.decode(subgoals)  # (B, T, D)
+            goal_feat = target if self.decoded_subgoal_input else subgoals
+        feats, _, _ = self.features(post, goal_feat)  # (B, T, F)
+        rewards = {"extrinsic": batch.rewards}
+        if target is not None:
+            rewards["subgoal"] = F.pad(max_cosine_subgoal_reward(post.deter[:, 1:], target[:, :-1]), (1, 0))
+        if "novelty" in self.reward_terms:
+            rewards["novelty"] = novelty_reward(post.deter, self.autoencoder)
+        return ReplaySequences(feats, rewards, 1.0 - batch.is_terminal.float(), batch.is_first, starts)
+
     def train_step(self, samples: SequenceSamples, replan: Replan | None = None) -> LevelUpdate:
         """One training iteration of this level on a batch of chunks (Algorithm 2, thesis 4.6.2).
 
@@ -522,7 +550,12 @@ class Subactor(LevelLearner):
             rewards = self.imagined_rewards(imagined)
         continues = th.cat([first_cont.unsqueeze(0), imagined.continues[1:].detach()], 0)  # (H+1, N)
         deter = imagined.states.deter
-        tensors.update(learn_from_imagination(self, imagined.features, imagined.actions, rewards, continues, deter))
+        replay = None
+        if self.actor_critic.replay_value_scale > 0.0:
+            replay = self.replay_sequences(batch, post, subgoals, chosen)
+        tensors.update(
+            learn_from_imagination(self, imagined.features, imagined.actions, rewards, continues, deter, replay)
+        )
         if "subgoal" in rewards:
             final = rewards["subgoal"][-1].detach()  # (N,)
             tensors["subgoal/final_reward"] = final.mean()
