@@ -457,6 +457,9 @@ def test_replay_value_loss_bootstraps_with_the_imagined_returns():
     assert th.allclose(mean, gamma * full[:, 1:].mean())
     with pytest.raises(ValueError, match=r"replay\.starts has 6 entries"):
         ac.replay_value_loss("extrinsic", _replay(starts=starts), start_returns)
+    with th.autocast("cpu", dtype=th.bfloat16):  # the returns stay float32 under a bf16 autocast
+        loss, mean = ac.replay_value_loss("extrinsic", _replay(), start_returns)
+    assert mean.dtype == th.float32 and th.allclose(mean, gamma * boot[:, 1:].mean()) and th.isfinite(loss)
 
 
 def test_replay_value_loss_trains_only_the_critics_and_only_when_weighted():

@@ -570,8 +570,8 @@ class ActorCritic(nn.Module):
         feats = replay.feats.detach()  # (B, T, F)
         batch = feats.shape[:2]
         dist = critic(feats)  # (B, T)
-        boot = dist.mean.detach().reshape(-1)  # (B*T,)
-        start_returns = start_returns.detach().to(boot.dtype).reshape(-1)
+        boot = dist.mean.detach().float().reshape(-1)  # (B*T,), the returns in float32 under a bf16 autocast too
+        start_returns = start_returns.detach().float().reshape(-1)
         if replay.starts is None:
             if start_returns.shape != boot.shape:
                 raise ValueError(f"start_returns must have {boot.numel()} entries, got {start_returns.numel()}")
@@ -583,8 +583,8 @@ class ActorCritic(nn.Module):
                 )
             boot = boot.index_copy(0, replay.starts, start_returns)
         returns, valid = replay_lambda_returns(
-            replay.rewards[term].transpose(0, 1).to(boot.dtype),
-            replay.continues.transpose(0, 1).to(boot.dtype),
+            replay.rewards[term].transpose(0, 1).float(),
+            replay.continues.transpose(0, 1).float(),
             replay.is_first.transpose(0, 1),
             boot.reshape(batch).transpose(0, 1),
             self.discount,
