@@ -27,6 +27,10 @@ CHANGE_SUITES = {
         "--tasks", "CartPole-v1", "cartpole-balance-proprio", "Pendulum-v1",
         "--hieros-kwargs", '{"policy_kwargs": {"bf16": true}}',
     ],
+    "replay_value_loss": [
+        "--tasks", "cartpole-balance-proprio", "CartPole-v1",
+        "--hieros-kwargs", '{"config_overrides": {"actor_critic": {"replay_value_loss": 0.3}}}',
+    ],
     "deter_from_output": ["--tasks", "cartpole-balance-proprio", "CartPole-v1", "Pendulum-v1"],
     "deter_from_gru": [
         "--tasks", "cartpole-balance-proprio", "cartpole-balance-pixels", "CartPole-v1", "Pendulum-v1",
