@@ -56,7 +56,6 @@ CHANGE_SUITES = {
         '{"config_overrides": {"world_model": {"deter_from": "gru", "action_input": "separate"}, '
         '"world_model_updates": 4}}',
     ],
-    "preset_gru_pixels": ["--tasks", "cartpole-balance-pixels"],
     "world_model_updates_8": [
         "--tasks", "cartpole-balance-proprio",
         "--hieros-kwargs", '{"config_overrides": {"world_model": {"deter_from": "gru"}, "world_model_updates": 8}}',
