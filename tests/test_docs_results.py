@@ -28,7 +28,7 @@ CHANGE_SUITES = {
         "--hieros-kwargs", '{"policy_kwargs": {"bf16": true}}',
     ],
     "replay_value_loss": [
-        "--tasks", "cartpole-balance-proprio", "CartPole-v1",
+        "--tasks", "cartpole-balance-proprio", "CartPole-v1", "Pendulum-v1",
         "--hieros-kwargs", '{"config_overrides": {"actor_critic": {"replay_value_loss": 0.3}}}',
     ],
     "deter_from_output": ["--tasks", "cartpole-balance-proprio", "CartPole-v1", "Pendulum-v1"],
