@@ -63,6 +63,8 @@ def test_lambda_returns_bad_shapes():
         lambda_returns(x, x, x, th.zeros(3))
     with pytest.raises(ValueError, match="lambda_"):
         lambda_returns(x, x, x, th.zeros(2), lambda_=1.5)
+    with pytest.raises(ValueError, match="cut must have the shape"):
+        lambda_returns(x, x, x, th.zeros(2), cut=th.zeros(2, 2, dtype=th.bool))
 
 
 def test_replay_lambda_returns_hand_computed_and_cut_at_episode_starts():

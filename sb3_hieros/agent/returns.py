@@ -15,6 +15,7 @@ def lambda_returns(
     bootstrap: th.Tensor,
     discount: float = 0.997,
     lambda_: float = 0.95,
+    cut: th.Tensor | None = None,
 ) -> th.Tensor:
     r"""TD(lambda) returns of an imagined trajectory s_0 .. s_H, time-major (DreamerV3 definition).
 
@@ -33,6 +34,8 @@ def lambda_returns(
     :param bootstrap: (*B) v(s_H), the value of the last imagined state
     :param discount: gamma
     :param lambda_: lambda in [0, 1]; 0 gives one-step TD targets, 1 Monte-Carlo returns bootstrapped at s_H
+    :param cut: (H, *B) bool or None; where ``cut[t]``, s_t does not lead to s_{t+1} (a replayed sequence that
+        crosses an episode start) and R_t = ``values[t]``, which the earlier returns then bootstrap from
     :return: (H, *B) returns R_0 .. R_{H-1}
     """
     if rewards.dim() < 1 or rewards.shape[0] < 1:
@@ -46,6 +49,8 @@ def lambda_returns(
         raise ValueError(f"bootstrap must have shape {tuple(rewards.shape[1:])}, got {tuple(bootstrap.shape)}")
     if not 0.0 <= lambda_ <= 1.0:
         raise ValueError(f"lambda_ must be in [0, 1], got {lambda_}")
+    if cut is not None and cut.shape != rewards.shape:
+        raise ValueError(f"cut must have the shape of rewards {tuple(rewards.shape)}, got {tuple(cut.shape)}")
     disc = discount * continues
     next_values = th.cat([values[1:], bootstrap.unsqueeze(0)], 0)
     inputs = rewards + disc * (1.0 - lambda_) * next_values
@@ -53,6 +58,8 @@ def lambda_returns(
     returns = []
     for t in reversed(range(rewards.shape[0])):
         last = inputs[t] + disc[t] * lambda_ * last
+        if cut is not None:
+            last = th.where(cut[t], values[t], last)
         returns.append(last)
     return th.stack(returns[::-1], 0)
 
@@ -88,18 +95,12 @@ def replay_lambda_returns(
     for name, x in (("continues", continues), ("is_first", is_first), ("bootstrap", bootstrap)):
         if x.shape != rewards.shape:
             raise ValueError(f"{name} must have the shape of rewards {tuple(rewards.shape)}, got {tuple(x.shape)}")
-    if not 0.0 <= lambda_ <= 1.0:
-        raise ValueError(f"lambda_ must be in [0, 1], got {lambda_}")
-    linked = ~is_first[1:].bool()  # (T-1, *B): s_t -> s_{t+1} lies within one episode
-    disc = discount * continues[1:]
-    inputs = rewards[1:] + disc * (1.0 - lambda_) * bootstrap[1:]
-    last = bootstrap[-1]
-    returns = [last]
-    for t in reversed(range(rewards.shape[0] - 1)):
-        last = th.where(linked[t], inputs[t] + disc[t] * lambda_ * last, bootstrap[t])
-        returns.append(last)
-    valid = th.cat([linked, th.zeros_like(linked[:1])], 0)
-    return th.stack(returns[::-1], 0), valid
+    crossing = is_first[1:].bool()  # (T-1, *B): s_{t+1} starts a new episode
+    returns = lambda_returns(
+        rewards[1:], bootstrap[:-1], continues[1:], bootstrap[-1], discount, lambda_, cut=crossing
+    )  # R_0 .. R_{T-2}
+    valid = th.cat([~crossing, th.zeros_like(crossing[:1])], 0)
+    return th.cat([returns, bootstrap[-1:]], 0), valid
 
 
 def cumulative_discount(continues: th.Tensor, discount: float = 0.997) -> th.Tensor:
