@@ -60,6 +60,18 @@ CHANGE_SUITES = {
         "--tasks", "cartpole-balance-proprio",
         "--hieros-kwargs", '{"config_overrides": {"world_model": {"deter_from": "gru"}, "world_model_updates": 8}}',
     ],
+    "actor_lr_3e-5": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs", '{"config_overrides": {"actor_critic": {"actor_lr": 3e-5}}}',
+    ],
+    "critic_lr_3e-4": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs", '{"config_overrides": {"actor_critic": {"critic_lr": 3e-4}}}',
+    ],
+    "world_model_updates_2": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs", '{"config_overrides": {"world_model_updates": 2}}',
+    ],
 }  # fmt: skip
 
 
