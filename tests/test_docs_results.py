@@ -69,7 +69,7 @@ CHANGE_SUITES = {
         "--hieros-kwargs", '{"config_overrides": {"actor_critic": {"critic_lr": 3e-4}}}',
     ],
     "world_model_updates_2": [
-        "--tasks", "cartpole-balance-proprio",
+        "--tasks", "cartpole-balance-proprio", "CartPole-v1",
         "--hieros-kwargs", '{"config_overrides": {"world_model_updates": 2}}',
     ],
 }  # fmt: skip
