@@ -2,19 +2,22 @@
 
 ``benchmarks/speed.py`` runs this file with :func:`benchmarks._gitref.run_script` for the working tree and for a git
 ref, so ``import sb3_hieros`` here loads the package of the tree it is run for. Only the public API is used
-(``HIEROS(..., preset=, seed=, learning_starts=)``, ``learn``, ``predict``), so any revision with that API can be
-timed. The Atari environment comes from this file's own ``suites.py`` (loaded by path), the same on both sides.
+(``HIEROS(..., preset=, seed=, learning_starts=, config_overrides=)``, ``learn``, ``predict``), so any revision with
+that API can be timed. The Atari environment comes from this file's own ``suites.py`` (loaded by path), the same on
+both sides.
 
 Parts (``--part``), each on ``--threads`` torch threads:
 
-* ``learn``: wall time of ``model.learn(steps)`` of a new small-preset ``MlpPolicy`` model on CartPole-v1;
+* ``learn``: wall time of ``model.learn(steps)`` of a new small-preset ``MlpPolicy`` model on ``--learn-env``
+  (a Gymnasium id with vector observations, CartPole-v1 by default);
 * ``predict``: latency of ``model.predict(obs, state, episode_start, deterministic=True)`` on one CartPole env, the
   recurrent state threaded from call to call (an untrained small-preset model; the env is stepped with the actions);
 * ``pong``: env steps per second of ``learn`` on ALE Pong 64x64 with the small preset, after ``learning_starts``
   random steps and one untimed warm-up segment, over one timed segment in which every level trains.
 
-``--policy-kwargs`` (JSON) are passed to every model as ``policy_kwargs`` (e.g. ``{"bf16": true}``). The result is
-written as JSON to ``--out``.
+``--policy-kwargs`` (JSON) are passed to every model as ``policy_kwargs`` (e.g. ``{"bf16": true}``), and
+``--config-overrides`` (JSON) as ``config_overrides`` (e.g. ``{"world_model_updates": 2}``; left out when empty, so
+that revisions before that keyword can still be timed). The result is written as JSON to ``--out``.
 """
 
 from __future__ import annotations
@@ -41,26 +44,39 @@ def _level_updates(model: Any) -> list[int]:
     return list(counts or [])
 
 
+def _config_keywords(config_overrides: dict[str, Any] | None) -> dict[str, Any]:
+    """``config_overrides=`` where there are any, nothing otherwise (revisions before the keyword take no such key)."""
+    return {"config_overrides": config_overrides} if config_overrides else {}
+
+
 def time_learn(
-    steps: int, learning_starts: int, seed: int, policy_kwargs: dict[str, Any] | None = None
+    steps: int,
+    learning_starts: int,
+    seed: int,
+    policy_kwargs: dict[str, Any] | None = None,
+    env_id: str = "CartPole-v1",
+    config_overrides: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Seconds of ``learn(steps)`` on CartPole-v1, small preset (construction not timed).
+    """Seconds of ``learn(steps)`` on ``env_id``, small preset (construction not timed).
 
     :param steps: environment steps
     :param learning_starts: random steps before training
     :param seed: seed of the model and its env
     :param policy_kwargs: the model's ``policy_kwargs`` (None: none)
+    :param env_id: Gymnasium id of an env with vector observations
+    :param config_overrides: the model's ``config_overrides`` (None or empty: none)
     :return: ``seconds`` and ``level_updates``
     """
     from sb3_hieros import HIEROS
 
     model = HIEROS(
         "MlpPolicy",
-        "CartPole-v1",
+        env_id,
         preset="small",
         seed=seed,
         learning_starts=learning_starts,
         policy_kwargs=policy_kwargs,
+        **_config_keywords(config_overrides),
     )
     start = time.perf_counter()
     model.learn(steps)
@@ -68,20 +84,34 @@ def time_learn(
     return {"seconds": seconds, "level_updates": _level_updates(model)}
 
 
-def time_predict(calls: int, warmup: int, seed: int, policy_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
+def time_predict(
+    calls: int,
+    warmup: int,
+    seed: int,
+    policy_kwargs: dict[str, Any] | None = None,
+    config_overrides: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     """Per-call latency of deterministic ``predict`` on one CartPole env with the state threaded.
 
     :param calls: timed calls
     :param warmup: untimed calls first
     :param seed: seed of the model and of the env
     :param policy_kwargs: the model's ``policy_kwargs`` (None: none)
+    :param config_overrides: the model's ``config_overrides`` (None or empty: none)
     :return: ``median_ms``, ``mean_ms`` and ``calls``
     """
     import gymnasium as gym
 
     from sb3_hieros import HIEROS
 
-    model = HIEROS("MlpPolicy", "CartPole-v1", preset="small", seed=seed, policy_kwargs=policy_kwargs)
+    model = HIEROS(
+        "MlpPolicy",
+        "CartPole-v1",
+        preset="small",
+        seed=seed,
+        policy_kwargs=policy_kwargs,
+        **_config_keywords(config_overrides),
+    )
     env = gym.make("CartPole-v1")
     obs, _ = env.reset(seed=seed)
     state, start = None, True
@@ -115,7 +145,12 @@ def _suites() -> Any:
 
 
 def time_pong(
-    steps: int, warmup: int, learning_starts: int, seed: int, policy_kwargs: dict[str, Any] | None = None
+    steps: int,
+    warmup: int,
+    learning_starts: int,
+    seed: int,
+    policy_kwargs: dict[str, Any] | None = None,
+    config_overrides: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Env steps per second of ``learn`` on ALE Pong 64x64, small preset, over one timed segment.
 
@@ -124,13 +159,20 @@ def time_pong(
     :param learning_starts: untimed random steps first
     :param seed: seed of the model and of the env
     :param policy_kwargs: the model's ``policy_kwargs`` (None: none)
+    :param config_overrides: the model's ``config_overrides`` (None or empty: none)
     :return: ``steps_per_s`` and ``level_updates`` (updates per level in the timed segment)
     """
     from sb3_hieros import HIEROS
 
     env = _suites().make_atari_env("Pong", seed=seed)
     model = HIEROS(
-        "CnnPolicy", env, preset="small", seed=seed, learning_starts=learning_starts, policy_kwargs=policy_kwargs
+        "CnnPolicy",
+        env,
+        preset="small",
+        seed=seed,
+        learning_starts=learning_starts,
+        policy_kwargs=policy_kwargs,
+        **_config_keywords(config_overrides),
     )
     model.learn(learning_starts + warmup)
     before = _level_updates(model)
@@ -148,6 +190,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--learn-steps", type=int, default=3000)
+    parser.add_argument("--learn-env", default="CartPole-v1")
     parser.add_argument("--learning-starts", type=int, default=500)
     parser.add_argument("--predict-calls", type=int, default=500)
     parser.add_argument("--predict-warmup", type=int, default=20)
@@ -155,15 +198,18 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--pong-warmup", type=int, default=32)
     parser.add_argument("--pong-learning-starts", type=int, default=256)
     parser.add_argument("--policy-kwargs", type=json.loads, default={}, help="policy_kwargs of the models, as JSON")
+    parser.add_argument(
+        "--config-overrides", type=json.loads, default={}, help="config_overrides of the models, as JSON"
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    kwargs = args.policy_kwargs
+    kwargs, overrides = args.policy_kwargs, args.config_overrides
     if args.part == "learn":
-        result = time_learn(args.learn_steps, args.learning_starts, args.seed, kwargs)
+        result = time_learn(args.learn_steps, args.learning_starts, args.seed, kwargs, args.learn_env, overrides)
     elif args.part == "predict":
-        result = time_predict(args.predict_calls, args.predict_warmup, args.seed, kwargs)
+        result = time_predict(args.predict_calls, args.predict_warmup, args.seed, kwargs, overrides)
     else:
-        result = time_pong(args.pong_steps, args.pong_warmup, args.pong_learning_starts, args.seed, kwargs)
+        result = time_pong(args.pong_steps, args.pong_warmup, args.pong_learning_starts, args.seed, kwargs, overrides)
     import sb3_hieros
 
     result["sb3_hieros"] = str(pathlib.Path(sb3_hieros.__file__).resolve().parent)

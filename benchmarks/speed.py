@@ -27,6 +27,10 @@ over the repetitions and the speed-ups (ref time / our time, our steps/s / ref s
 ``--policy-kwargs`` and ``--ref-policy-kwargs`` (JSON) set the models' ``policy_kwargs`` of each side, e.g.
 ``--ref HEAD --policy-kwargs '{"bf16": true}' --ref-policy-kwargs '{"bf16": false}'`` times bf16 losses against
 float32 in the same code (the default, ``"auto"``, is bf16 on CPUs with native bf16 and float32 elsewhere).
+``--config-overrides`` and ``--ref-config-overrides`` (JSON) set each side's ``config_overrides`` in the same way, and
+``--learn-env`` times ``learn`` on another Gymnasium env with vector observations: ``--ref HEAD --parts learn
+--learn-env Pendulum-v1 --config-overrides '{"world_model_updates": 2}'`` times what a configuration change costs on a
+continuous-control task.
 
 ``python -m benchmarks.speed profile`` asks where the time of one update and of one ``predict`` goes, with
 ``torch.profiler``: a small-preset ``MlpPolicy`` model on CartPole-v1 learns past ``learning_starts``, then
@@ -519,6 +523,7 @@ def run_compare(args: argparse.Namespace) -> None:
         f"--threads={args.threads}",
         f"--seed={args.seed}",
         f"--learn-steps={args.learn_steps}",
+        f"--learn-env={args.learn_env}",
         f"--learning-starts={args.learning_starts}",
         f"--predict-calls={args.predict_calls}",
         f"--pong-steps={args.pong_steps}",
@@ -526,8 +531,16 @@ def run_compare(args: argparse.Namespace) -> None:
         f"--pong-learning-starts={args.pong_learning_starts}",
     ]
     side_options = {
-        "here": [*options, f"--policy-kwargs={json.dumps(args.policy_kwargs)}"],
-        "ref": [*options, f"--policy-kwargs={json.dumps(args.ref_policy_kwargs)}"],
+        "here": [
+            *options,
+            f"--policy-kwargs={json.dumps(args.policy_kwargs)}",
+            f"--config-overrides={json.dumps(args.config_overrides)}",
+        ],
+        "ref": [
+            *options,
+            f"--policy-kwargs={json.dumps(args.ref_policy_kwargs)}",
+            f"--config-overrides={json.dumps(args.ref_config_overrides)}",
+        ],
     }
     print(environment_header())
     print(
@@ -535,10 +548,10 @@ def run_compare(args: argparse.Namespace) -> None:
         f"repetitions, sides alternated A B B A, {args.threads} torch thread(s), fresh interpreter per timing"
     )
     print(
-        f"learn: CartPole-v1 learn({args.learn_steps}), learning_starts {args.learning_starts}; predict: "
+        f"learn: {args.learn_env} learn({args.learn_steps}), learning_starts {args.learning_starts}; predict: "
         f"{args.predict_calls} calls; pong: {args.pong_steps} timed env steps after {args.pong_learning_starts} "
         f"random + {args.pong_warmup} warm-up steps; policy_kwargs here {args.policy_kwargs}, ref "
-        f"{args.ref_policy_kwargs}"
+        f"{args.ref_policy_kwargs}; config_overrides here {args.config_overrides}, ref {args.ref_config_overrides}"
     )
     samples: dict[str, dict[str, list[float]]] = {part: {"here": [], "ref": []} for part in args.parts}
     with _gitref.checkout(commit, root) as tree:
@@ -746,6 +759,11 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--reps", type=int, default=3, help="repetitions of every part and side (default 3)")
     compare.add_argument("--threads", type=int, default=1, help="torch threads of the timed runs (default 1)")
     compare.add_argument("--learn-steps", type=int, default=3000, help="env steps of the learn part (default 3000)")
+    compare.add_argument(
+        "--learn-env",
+        default="CartPole-v1",
+        help="Gymnasium env of the learn part, vector observations (default CartPole-v1)",
+    )
     compare.add_argument("--learning-starts", type=int, default=500, help="of the learn part (default 500)")
     compare.add_argument("--predict-calls", type=int, default=500, help="timed predict calls (default 500)")
     compare.add_argument("--pong-steps", type=int, default=128, help="timed Pong env steps (default 128)")
@@ -763,6 +781,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     compare.add_argument(
         "--ref-policy-kwargs", type=json.loads, default={}, help="policy_kwargs of the ref's models, JSON"
+    )
+    compare.add_argument(
+        "--config-overrides",
+        type=json.loads,
+        default={},
+        help="config_overrides of the working tree's models, JSON (e.g. '{\"world_model_updates\": 2}')",
+    )
+    compare.add_argument(
+        "--ref-config-overrides", type=json.loads, default={}, help="config_overrides of the ref's models, JSON"
     )
     compare.set_defaults(func=run_compare)
 

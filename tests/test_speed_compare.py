@@ -24,33 +24,45 @@ def test_speedups_are_ref_over_here_for_times_and_here_over_ref_for_rates():
     assert "[1.500, 4.000]" in learn_row  # range of the paired speed-ups
 
 
+#: one repetition against HEAD with a learn part of 8 training steps
+TINY = ["compare", "--ref", "HEAD", "--reps", "1", "--learn-steps", "24", "--learning-starts", "16"]
+
+
 def test_compare_against_head_on_tiny_settings(capsys):
-    main(
-        [
-            "compare",
-            "--ref",
-            "HEAD",
-            "--parts",
-            "learn",
-            "predict",
-            "--reps",
-            "1",
-            "--learn-steps",
-            "24",
-            "--learning-starts",
-            "16",
-            "--predict-calls",
-            "3",
-            "--policy-kwargs",
-            '{"bf16": true}',
-        ]
-    )
+    main([*TINY, "--parts", "learn", "predict", "--predict-calls", "3", "--policy-kwargs", '{"bf16": true}'])
     out = capsys.readouterr().out
     assert "policy_kwargs here {'bf16': True}, ref {}" in out
     for name in ("learn_speedup", "predict_speedup", "learn_speedup_of_medians"):
         assert f"\n{name}: " in out
     assert "rep 1 learn    here" in out and "rep 1 learn    ref " in out
     assert "pong" not in out.split("\n\n")[-1]  # a part not asked for is not timed
+
+
+def test_compare_passes_learn_env_and_config_overrides_to_each_side(capsys):
+    main([*TINY, "--parts", "learn", "--learn-env", "Pendulum-v1", "--config-overrides", '{"world_model_updates": 2}'])
+    out = capsys.readouterr().out
+    assert "learn: Pendulum-v1 learn(24)" in out
+    assert "config_overrides here {'world_model_updates': 2}, ref {}" in out
+    assert "rep 1 learn    here" in out and "rep 1 learn    ref " in out
+
+
+def test_learn_part_builds_the_model_it_is_asked_for(monkeypatch):
+    import sb3_hieros
+
+    built = {}
+
+    class Recording(sb3_hieros.HIEROS):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            built["env"] = self.env.envs[0].spec.id
+            built["world_model_updates"] = self.config.world_model_updates
+
+    monkeypatch.setattr(sb3_hieros, "HIEROS", Recording)
+    result = _speed_cases.time_learn(24, 16, 0, env_id="Pendulum-v1", config_overrides={"world_model_updates": 2})
+    assert built == {"env": "Pendulum-v1", "world_model_updates": 2}
+    assert result["seconds"] > 0 and result["level_updates"][0] > 0
+    _speed_cases.time_learn(24, 16, 0)  # the defaults: CartPole-v1, no config_overrides
+    assert built == {"env": "CartPole-v1", "world_model_updates": 1}
 
 
 def test_compare_checks_its_arguments():
