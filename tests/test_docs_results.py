@@ -72,6 +72,10 @@ CHANGE_SUITES = {
         "--tasks", "cartpole-balance-proprio", "CartPole-v1",
         "--hieros-kwargs", '{"config_overrides": {"world_model_updates": 2}}',
     ],
+    "world_model_updates_2_bf16": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs", '{"config_overrides": {"world_model_updates": 2}, "policy_kwargs": {"bf16": true}}',
+    ],
     "world_model_updates_2_float32": [
         "--tasks", "Pendulum-v1", "cartpole-balance-pixels",
         "--hieros-kwargs", '{"config_overrides": {"world_model_updates": 2}, "policy_kwargs": {"bf16": false}}',
