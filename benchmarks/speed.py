@@ -513,6 +513,13 @@ def compare_table(samples: dict[str, dict[str, list[float]]]) -> str:
     return "\n".join([*lines, "", *summary])
 
 
+#: the model settings each side of ``compare`` has: option (the ref's is ``--ref-<option>``), HIEROS keyword, example
+SIDE_SETTINGS = (
+    ("policy-kwargs", "policy_kwargs", '{"bf16": true}'),
+    ("config-overrides", "config_overrides", '{"world_model_updates": 2}'),
+)
+
+
 def run_compare(args: argparse.Namespace) -> None:
     """``compare`` subcommand: the working tree against ``--ref``, parts alternated; prints the speed-ups last."""
     if args.reps < 1:
@@ -531,16 +538,8 @@ def run_compare(args: argparse.Namespace) -> None:
         f"--pong-learning-starts={args.pong_learning_starts}",
     ]
     side_options = {
-        "here": [
-            *options,
-            f"--policy-kwargs={json.dumps(args.policy_kwargs)}",
-            f"--config-overrides={json.dumps(args.config_overrides)}",
-        ],
-        "ref": [
-            *options,
-            f"--policy-kwargs={json.dumps(args.ref_policy_kwargs)}",
-            f"--config-overrides={json.dumps(args.ref_config_overrides)}",
-        ],
+        side: [*options, *(f"--{name}={json.dumps(getattr(args, prefix + dest))}" for name, dest, _ in SIDE_SETTINGS)]
+        for side, prefix in (("here", ""), ("ref", "ref_"))
     }
     print(environment_header())
     print(
@@ -773,24 +772,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     compare.add_argument("--seed", type=int, default=0)
     compare.add_argument("--timeout", type=float, default=3600.0, help="seconds per timing (default 3600)")
-    compare.add_argument(
-        "--policy-kwargs",
-        type=json.loads,
-        default={},
-        help="policy_kwargs of the working tree's models, JSON (e.g. '{\"bf16\": true}')",
-    )
-    compare.add_argument(
-        "--ref-policy-kwargs", type=json.loads, default={}, help="policy_kwargs of the ref's models, JSON"
-    )
-    compare.add_argument(
-        "--config-overrides",
-        type=json.loads,
-        default={},
-        help="config_overrides of the working tree's models, JSON (e.g. '{\"world_model_updates\": 2}')",
-    )
-    compare.add_argument(
-        "--ref-config-overrides", type=json.loads, default={}, help="config_overrides of the ref's models, JSON"
-    )
+    for name, dest, example in SIDE_SETTINGS:
+        compare.add_argument(
+            f"--{name}",
+            type=json.loads,
+            default={},
+            help=f"{dest} of the working tree's models, JSON (e.g. '{example}')",
+        )
+        compare.add_argument(f"--ref-{name}", type=json.loads, default={}, help=f"{dest} of the ref's models, JSON")
     compare.set_defaults(func=run_compare)
 
     prof = sub.add_parser("profile", help="where one update's and one predict call's time goes (torch.profiler)")
