@@ -513,6 +513,21 @@ def compare_table(samples: dict[str, dict[str, list[float]]]) -> str:
     return "\n".join([*lines, "", *summary])
 
 
+def json_object(text: str) -> dict[str, Any]:
+    """argparse type of the keyword options: a JSON object, refused with the text otherwise.
+
+    :param text: the option's value
+    :return: the object as a dict
+    """
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise argparse.ArgumentTypeError(f"{text!r} is not JSON ({error}); expected a JSON object") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"{text!r} is a JSON {type(value).__name__}; expected a JSON object")
+    return value
+
+
 #: the model settings each side of ``compare`` has: option (the ref's is ``--ref-<option>``), HIEROS keyword, example
 SIDE_SETTINGS = (
     ("policy-kwargs", "policy_kwargs", '{"bf16": true}'),
@@ -775,11 +790,11 @@ def build_parser() -> argparse.ArgumentParser:
     for name, dest, example in SIDE_SETTINGS:
         compare.add_argument(
             f"--{name}",
-            type=json.loads,
+            type=json_object,
             default={},
             help=f"{dest} of the working tree's models, JSON (e.g. '{example}')",
         )
-        compare.add_argument(f"--ref-{name}", type=json.loads, default={}, help=f"{dest} of the ref's models, JSON")
+        compare.add_argument(f"--ref-{name}", type=json_object, default={}, help=f"{dest} of the ref's models, JSON")
     compare.set_defaults(func=run_compare)
 
     prof = sub.add_parser("profile", help="where one update's and one predict call's time goes (torch.profiler)")
@@ -789,7 +804,7 @@ def build_parser() -> argparse.ArgumentParser:
     prof.add_argument("--updates", type=int, default=20, help="profiled level-0 updates (default 20)")
     prof.add_argument("--predict-calls", type=int, default=300, help="profiled predict calls (default 300)")
     prof.add_argument("--seed", type=int, default=0)
-    prof.add_argument("--policy-kwargs", type=json.loads, default={}, help="the model's policy_kwargs, JSON")
+    prof.add_argument("--policy-kwargs", type=json_object, default={}, help="the model's policy_kwargs, JSON")
     prof.set_defaults(func=run_profile)
     return parser
 

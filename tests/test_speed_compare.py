@@ -65,13 +65,19 @@ def test_learn_part_builds_the_model_it_is_asked_for(monkeypatch):
     assert built == {"env": "CartPole-v1", "world_model_updates": 1}
 
 
-def test_compare_checks_its_arguments():
+def test_compare_checks_its_arguments(capsys):
     with pytest.raises(SystemExit):
         main(["compare"])  # --ref is required
     with pytest.raises(SystemExit):
         main(["compare", "--ref", "HEAD", "--parts", "walk"])
     with pytest.raises(ValueError, match="--reps must be >= 1, got 0"):
         main(["compare", "--ref", "HEAD", "--reps", "0"])
+    with pytest.raises(SystemExit):
+        main(["compare", "--ref", "HEAD", "--config-overrides", "[1]"])
+    assert "--config-overrides: '[1]' is a JSON list; expected a JSON object" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["compare", "--ref", "HEAD", "--ref-policy-kwargs", "{bad"])
+    assert "--ref-policy-kwargs: '{bad' is not JSON" in capsys.readouterr().err
     with pytest.raises(ValueError, match="names no commit"):
         main(["compare", "--ref", "no-such-branch-anywhere"])
 
