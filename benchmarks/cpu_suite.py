@@ -391,7 +391,8 @@ def suite_runs(
     :param steps: agent steps per run (>= 1)
     :param eval_episodes: episodes per evaluation
     :param n_evals: evaluations per run, the last at the end
-    :param hieros_kwargs: HIEROS keywords
+    :param hieros_kwargs: HIEROS keywords, given to the HIEROS runs only (every other run has none, so that a report
+        with HIEROS keywords still finds the peers' records)
     :return: the runs, task-major, then algorithm, then seed
     """
     for task in tasks:
@@ -405,7 +406,7 @@ def suite_runs(
     if isinstance(n_evals, bool) or not isinstance(n_evals, int) or n_evals < 1:
         raise ValueError(f"n_evals must be an int >= 1, got {n_evals!r}")
     return [
-        SuiteRun(task, algo, seed, steps, eval_episodes, n_evals, dict(hieros_kwargs or {}))
+        SuiteRun(task, algo, seed, steps, eval_episodes, n_evals, dict(hieros_kwargs or {}) if algo == "hieros" else {})
         for task in tasks
         for algo in TASKS[task].algos
         if algo in algos

@@ -46,6 +46,11 @@ def test_suite_runs_skip_unsupported_pairs():
         suite_runs(["CartPole-v1"], ["a2c"], [0], 100)
 
 
+def test_suite_runs_give_hieros_kwargs_to_hieros_only():
+    runs = suite_runs(["Pendulum-v1"], ["hieros", "dreamerv3", "sac"], [0], 100, hieros_kwargs={"n_levels": 1})
+    assert [(r.algo, r.hieros_kwargs) for r in runs] == [("hieros", {"n_levels": 1}), ("dreamerv3", {}), ("sac", {})]
+
+
 def test_tiny_cartpole_suite(tmp_path):
     records = main(
         [
@@ -55,6 +60,7 @@ def test_tiny_cartpole_suite(tmp_path):
         ]
     )  # fmt: skip
     assert [r["algo"] for r in records] == ["hieros", "ppo", "dqn"]
+    assert [bool(r["hieros_kwargs"]) for r in records] == [True, False, False]
     for record in records:
         assert record["eval_steps"][0] >= 128 and record["eval_steps"][-1] >= 256 and len(record["eval_returns"]) == 2
         assert record["final_mean"] == record["eval_returns"][-1] > 0 and record["trained_steps"] == 256
