@@ -75,6 +75,7 @@ SelfHIEROS = TypeVar("SelfHIEROS", bound="HIEROS")
 DEFAULTS_BEFORE_SAVED_CONFIG: dict[str, Any] = {
     "actor_critic": {"return_normalization": "per_term"},
     "world_model": {"deter_from": "state"},
+    "world_model_updates": 1,
 }
 
 

@@ -79,10 +79,10 @@ def test_load_keeps_the_saved_configuration(trained, monkeypatch, safe):
 
 def test_load_of_a_save_without_its_configuration(tmp_path, monkeypatch):
     # saves made before the configuration was saved with the model were trained with per-term return scales and
-    # the thesis' h_t readout
+    # the thesis' h_t readout and one world-model update per level update
     small = config.PRESETS["small"]
     old_small = lambda: small().replace(  # noqa: E731
-        actor_critic={"return_normalization": "per_term"}, world_model={"deter_from": "state"}
+        actor_critic={"return_normalization": "per_term"}, world_model={"deter_from": "state"}, world_model_updates=1
     )
     monkeypatch.setitem(config.PRESETS, "small", old_small)
     model = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs())
@@ -91,6 +91,7 @@ def test_load_of_a_save_without_its_configuration(tmp_path, monkeypatch):
     monkeypatch.setitem(config.PRESETS, "small", small)
     now = HIEROS("MlpPolicy", "CartPole-v1", **tiny_kwargs()).config
     assert now.actor_critic.return_normalization == "combined" and now.world_model.deter_from == "gru"
+    assert now.world_model_updates == 2
     loaded = HIEROS.load(tmp_path / "old.zip")
     assert loaded.config == model.config
     _assert_same_params(loaded.get_parameters(), model.get_parameters())

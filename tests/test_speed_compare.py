@@ -58,11 +58,11 @@ def test_learn_part_builds_the_model_it_is_asked_for(monkeypatch):
             built["world_model_updates"] = self.config.world_model_updates
 
     monkeypatch.setattr(sb3_hieros, "HIEROS", Recording)
-    result = _speed_cases.time_learn(24, 16, 0, env_id="Pendulum-v1", config_overrides={"world_model_updates": 2})
-    assert built == {"env": "Pendulum-v1", "world_model_updates": 2}
+    result = _speed_cases.time_learn(24, 16, 0, env_id="Pendulum-v1", config_overrides={"world_model_updates": 3})
+    assert built == {"env": "Pendulum-v1", "world_model_updates": 3}
     assert result["seconds"] > 0 and result["level_updates"][0] > 0
     _speed_cases.time_learn(24, 16, 0)  # the defaults: CartPole-v1, no config_overrides
-    assert built == {"env": "CartPole-v1", "world_model_updates": 1}
+    assert built == {"env": "CartPole-v1", "world_model_updates": sb3_hieros.get_preset("small").world_model_updates}
 
 
 def test_compare_checks_its_arguments(capsys):
