@@ -78,7 +78,7 @@ CHANGE_SUITES = {
         "--hieros-kwargs", '{"config_overrides": {"world_model_updates": 2}}',
     ],
     "world_model_updates_2_bf16": [
-        "--tasks", "cartpole-balance-proprio",
+        "--tasks", "cartpole-balance-proprio", "CartPole-v1", "Pendulum-v1",
         "--hieros-kwargs", '{"config_overrides": {"world_model_updates": 2}, "policy_kwargs": {"bf16": true}}',
     ],
     "world_model_updates_2_float32": [
