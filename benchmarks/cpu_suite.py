@@ -60,6 +60,8 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks._cli import json_object
+
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 __all__ = [
@@ -510,7 +512,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         "--n-evals", type=int, default=5, help="evaluations per run, evenly spaced, the last at the end"
     )
     parser.add_argument("--workers", type=int, default=1)
-    parser.add_argument("--hieros-kwargs", default="{}", help="JSON dict of HIEROS keywords")
+    parser.add_argument("--hieros-kwargs", type=json_object, default={}, help="JSON dict of HIEROS keywords")
     parser.add_argument("--out", default="cpu_suite")
     parser.add_argument(
         "--resume", action="store_true", help="reuse the runs already recorded in <out>/runs.jsonl (same settings)"
@@ -529,7 +531,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         args.steps,
         args.eval_episodes,
         args.n_evals,
-        json.loads(args.hieros_kwargs),
+        args.hieros_kwargs,
     )
 
     def report(record: dict[str, Any]) -> None:

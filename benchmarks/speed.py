@@ -60,6 +60,7 @@ import torch
 from torch import nn
 
 from benchmarks import _gitref
+from benchmarks._cli import json_object
 from benchmarks._timing import Timing, environment_header, format_ms, time_interleaved
 from sb3_hieros.nn.s5 import S5Layer, S5Stack, associative_scan_resettable, compile_s5, resettable_scan
 from sb3_hieros.nn.scan import _interleave
@@ -511,21 +512,6 @@ def compare_table(samples: dict[str, dict[str, list[float]]]) -> str:
             summary.append(f"pong_env_steps_per_s: {medians[0]:.2f}")
             summary.append(f"pong_env_steps_per_s_ref: {medians[1]:.2f}")
     return "\n".join([*lines, "", *summary])
-
-
-def json_object(text: str) -> dict[str, Any]:
-    """argparse type of the keyword options: a JSON object, refused with the text otherwise.
-
-    :param text: the option's value
-    :return: the object as a dict
-    """
-    try:
-        value = json.loads(text)
-    except json.JSONDecodeError as error:
-        raise argparse.ArgumentTypeError(f"{text!r} is not JSON ({error}); expected a JSON object") from None
-    if not isinstance(value, dict):
-        raise argparse.ArgumentTypeError(f"{text!r} is a JSON {type(value).__name__}; expected a JSON object")
-    return value
 
 
 #: the model settings each side of ``compare`` has: option (the ref's is ``--ref-<option>``), HIEROS keyword, example

@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks._cli import json_object
 from benchmarks.suites import SUITE_POLICIES, SUITES, make_env
 
 __all__ = ["EVAL_SEED_OFFSET", "run_dir", "train"]
@@ -186,13 +187,6 @@ def train(
     return record
 
 
-def _json_dict(text: str) -> dict[str, Any]:
-    value = json.loads(text)
-    if not isinstance(value, dict):
-        raise argparse.ArgumentTypeError(f"expected a JSON object, got {text!r}")
-    return value
-
-
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """Command line (see the module docstring)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -206,9 +200,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--periodic-eval-episodes", type=int, default=10)
     parser.add_argument("--out", default="runs")
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--config-overrides", type=_json_dict, default=None, help="JSON dict for config_overrides")
-    parser.add_argument("--hieros-kwargs", type=_json_dict, default=None, help="JSON dict of HIEROS keywords")
-    parser.add_argument("--env-kwargs", type=_json_dict, default=None, help="JSON dict for suites.make_env")
+    parser.add_argument("--config-overrides", type=json_object, default=None, help="JSON dict for config_overrides")
+    parser.add_argument("--hieros-kwargs", type=json_object, default=None, help="JSON dict of HIEROS keywords")
+    parser.add_argument("--env-kwargs", type=json_object, default=None, help="JSON dict for suites.make_env")
     parser.add_argument("--stochastic-eval", action="store_true", help="evaluate with sampled actions")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--verbose", type=int, default=0)

@@ -46,6 +46,12 @@ def test_suite_runs_skip_unsupported_pairs():
         suite_runs(["CartPole-v1"], ["a2c"], [0], 100)
 
 
+def test_cpu_suite_refuses_hieros_kwargs_that_are_not_a_json_object(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["--tasks", "CartPole-v1", "--report", "--out", str(tmp_path), "--hieros-kwargs", "[1]"])
+    assert "--hieros-kwargs: '[1]' is a JSON list; expected a JSON object" in capsys.readouterr().err
+
+
 def test_suite_runs_give_hieros_kwargs_to_hieros_only():
     runs = suite_runs(["Pendulum-v1"], ["hieros", "dreamerv3", "sac"], [0], 100, hieros_kwargs={"n_levels": 1})
     assert [(r.algo, r.hieros_kwargs) for r in runs] == [("hieros", {"n_levels": 1}), ("dreamerv3", {}), ("sac", {})]

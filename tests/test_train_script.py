@@ -64,3 +64,14 @@ def test_train_refuses_bad_arguments(tmp_path):
         train("classic", "CartPole-v1", eval_episodes=0, out=tmp_path)
     with pytest.raises(ValueError, match="hieros_kwargs must not contain 'preset'"):
         train("classic", "CartPole-v1", hieros_kwargs={"preset": "small"}, out=tmp_path)
+
+
+def test_train_refuses_keyword_options_that_are_not_json_objects(tmp_path, capsys):
+    base = ["--suite", "classic", "--task", "CartPole-v1", "--steps", "10", "--out", str(tmp_path)]
+    with pytest.raises(SystemExit):
+        main([*base, "--config-overrides", "[1]"])
+    assert "--config-overrides: '[1]' is a JSON list; expected a JSON object" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main([*base, "--env-kwargs", "{bad"])
+    assert "--env-kwargs: '{bad' is not JSON" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())  # refused before anything ran
