@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks._cli import json_object
 from benchmarks.sweep import Run, atari_id, run_sweep
 from sb3_hieros.ablations import ABLATIONS, ablation_changes_preset, ablation_overrides
 
@@ -224,7 +225,9 @@ def main(argv: list[str] | None = None) -> dict[tuple[str, str], dict[str, float
     parser.add_argument("--workers", type=int, default=1, help="parallel processes")
     parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
     parser.add_argument("--bins", type=int, default=20, help="points of the reward curves")
-    parser.add_argument("--hieros-kwargs", default="{}", help="JSON dict of extra HIEROS keywords for every run")
+    parser.add_argument(
+        "--hieros-kwargs", type=json_object, default={}, help="JSON dict of extra HIEROS keywords for every run"
+    )
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("results/ablations"))
     parser.add_argument(
         "--from-results",
@@ -237,9 +240,7 @@ def main(argv: list[str] | None = None) -> dict[tuple[str, str], dict[str, float
         return tabulate_results(args.from_results, args.out, args.bins)
     if args.seeds < 1 or args.steps < 1 or args.bins < 1:
         raise ValueError(f"--seeds, --steps and --bins must be >= 1, got {args.seeds}, {args.steps}, {args.bins}")
-    extra = json.loads(args.hieros_kwargs)
-    if not isinstance(extra, dict):
-        raise ValueError(f"--hieros-kwargs must be a JSON object, got {args.hieros_kwargs!r}")
+    extra = args.hieros_kwargs
     names = ablation_names(args.ablation, args.preset, extra.get("config_overrides"))
     envs = [atari_id(g) for g in args.games] if args.games else list(args.env)
     from benchmarks._timing import environment_header

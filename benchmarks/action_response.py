@@ -39,7 +39,6 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
-import json
 import time
 from collections.abc import Sequence
 from types import SimpleNamespace
@@ -48,6 +47,7 @@ from typing import Any
 import numpy as np
 import torch as th
 
+from benchmarks._cli import json_object
 from benchmarks._timing import environment_header
 from benchmarks.control_failures import _slope
 from benchmarks.suites import make_env
@@ -327,7 +327,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, float]:
         choices=("feedback", "one-policy", "balancing", "uniform"),
         help="training policy",
     )
-    parser.add_argument("--wm-overrides", default="{}", help="JSON dict of WorldModelConfig fields")
+    parser.add_argument("--wm-overrides", type=json_object, default={}, help="JSON dict of WorldModelConfig fields")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     args = parser.parse_args(argv)
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
@@ -338,9 +338,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, float]:
         raise ValueError(f"--seeds needs at least one seed, got {args.seeds!r}")
     if args.updates < 1 or args.episodes < 1:
         raise ValueError(f"--updates and --episodes must be >= 1, got {args.updates} and {args.episodes}")
-    overrides = json.loads(args.wm_overrides)
-    if not isinstance(overrides, dict) or "kind" in overrides:
-        raise ValueError(f"--wm-overrides must be a JSON dict without 'kind' (use --kinds), got {args.wm_overrides!r}")
+    overrides = args.wm_overrides
+    if "kind" in overrides:
+        raise ValueError(f"--wm-overrides must not set 'kind' (use --kinds), got {overrides!r}")
     th.set_num_threads(args.threads)
     print(environment_header())
     results = run(kinds, seeds, args.updates, args.episodes, args.data, overrides)

@@ -33,6 +33,8 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks._cli import json_object
+
 #: rl-zoo3 2.9.2 ``hyperparams/ppo.yml`` entry for CartPole-v1 (``lin_x`` = linear schedule from x to 0).
 ZOO_PPO = {
     "n_envs": 8,
@@ -250,7 +252,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--milestones", nargs="+", type=int, default=[5_000, 10_000, 20_000])
     parser.add_argument("--eval-episodes", type=int, default=10)
     parser.add_argument("--workers", type=int, default=1, help="parallel processes (one torch thread each)")
-    parser.add_argument("--hieros-kwargs", default="{}", help="JSON dict of extra HIEROS keywords")
+    parser.add_argument("--hieros-kwargs", type=json_object, default={}, help="JSON dict of extra HIEROS keywords")
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("results/sample_efficiency"))
     parser.add_argument(
         "--report", nargs="+", type=pathlib.Path, default=None, help="results.json files: table and figure only"
@@ -262,9 +264,7 @@ def main(argv: list[str] | None = None) -> dict:
     milestones = sorted(set(args.milestones))
     if not milestones or milestones[0] <= 0:
         raise ValueError(f"--milestones must be positive step counts, got {args.milestones}")
-    hieros_kwargs = json.loads(args.hieros_kwargs)
-    if not isinstance(hieros_kwargs, dict):
-        raise ValueError(f"--hieros-kwargs must be a JSON object, got {args.hieros_kwargs!r}")
+    hieros_kwargs = args.hieros_kwargs
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from benchmarks._timing import environment_header
 

@@ -58,3 +58,10 @@ def test_all_runs_the_novelty_ablation_that_changes_the_preset():
         ablation_names(["no_novelty"], "small")
     with pytest.raises(ValueError, match="unknown ablation 'nope'"):
         ablation_names(["nope"], "small")
+
+
+def test_hieros_kwargs_that_are_not_a_json_object_are_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["--hieros-kwargs", "{bad", "--out", str(tmp_path)])
+    assert "--hieros-kwargs: '{bad' is not JSON" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())

@@ -18,13 +18,19 @@ from benchmarks import action_response as bench
         (["--seeds", ","], "--seeds"),
         (["--updates", "0"], "--updates"),
         (["--wm-overrides", '{"kind": "rssm"}'], "--wm-overrides"),
-        (["--wm-overrides", "[1]"], "--wm-overrides"),
     ],
 )
 def test_bad_arguments_raise_before_any_work(monkeypatch, argv, match):
     monkeypatch.setattr(bench, "run", lambda *args: pytest.fail("trained despite a bad argument"))
     with pytest.raises(ValueError, match=match):
         bench.main(argv)
+
+
+def test_wm_overrides_that_are_not_a_json_object_are_refused(monkeypatch, capsys):
+    monkeypatch.setattr(bench, "run", lambda *args: pytest.fail("trained despite a bad argument"))
+    with pytest.raises(SystemExit):
+        bench.main(["--wm-overrides", "[1]"])
+    assert "--wm-overrides: '[1]' is a JSON list; expected a JSON object" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("kind", ["uniform", "smooth", "small"])

@@ -33,3 +33,10 @@ def test_report_merges_files_and_labels_variants(tmp_path):
     (tmp_path / "bad.json").write_text("{}")
     with pytest.raises(ValueError, match=r"not a results\.json"):
         main(["--report", str(tmp_path / "bad.json"), "--out", str(tmp_path / "out")])
+
+
+def test_hieros_kwargs_that_are_not_a_json_object_are_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["--hieros-kwargs", '"small"', "--out", str(tmp_path / "out")])
+    assert "--hieros-kwargs: '\"small\"' is a JSON str; expected a JSON object" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
