@@ -85,6 +85,23 @@ CHANGE_SUITES = {
         "--tasks", "Pendulum-v1", "cartpole-balance-pixels",
         "--hieros-kwargs", '{"config_overrides": {"world_model_updates": 2}, "policy_kwargs": {"bf16": false}}',
     ],
+    "batch_size_32": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs",
+        '{"config_overrides": {"world_model_updates": 2, "batch_size": 32}, "policy_kwargs": {"bf16": false}}',
+    ],
+    "imag_start_fraction_1": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs",
+        '{"config_overrides": {"world_model_updates": 2, "imag_start_fraction": 1.0}, '
+        '"policy_kwargs": {"bf16": false}}',
+    ],
+    "rssm_world_model_updates_2": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs",
+        '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 2}, '
+        '"policy_kwargs": {"bf16": false}}',
+    ],
 }  # fmt: skip
 
 
