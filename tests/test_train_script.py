@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from benchmarks.train import main, run_dir, train
+from benchmarks.train import CHECKPOINT_DIR, RunCheckpoint, main, run_dir, train
 from sb3_hieros import HIEROS
 
 TINY = {"learning_starts": 10_000, "buffer_size": 1000}  # no updates: the test checks the bookkeeping
@@ -75,3 +75,69 @@ def test_train_refuses_keyword_options_that_are_not_json_objects(tmp_path, capsy
         main([*base, "--env-kwargs", "{bad"])
     assert "--env-kwargs: '{bad' is not JSON" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())  # refused before anything ran
+
+
+RESUMABLE = {
+    "preset": "small",
+    "steps": 90,
+    "eval_freq": 30,
+    "periodic_eval_episodes": 1,
+    "eval_episodes": 1,
+    "hieros_kwargs": {"learning_starts": 20, "buffer_size": 1000},
+    "config_overrides": {"n_levels": 1},
+    "checkpoint_freq": 25,
+}
+
+
+def _interrupted_run(tmp_path, monkeypatch, at: int) -> None:
+    """A run of RESUMABLE stopped by a KeyboardInterrupt right after its checkpoint at step ``at``."""
+    save = RunCheckpoint._on_rollout_start
+
+    def save_then_stop(self):
+        save(self)
+        if self.last_saved == at:
+            raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(RunCheckpoint, "_on_rollout_start", save_then_stop)
+        with pytest.raises(KeyboardInterrupt):
+            train("classic", "CartPole-v1", out=tmp_path, **RESUMABLE)
+
+
+def test_train_resumes_from_its_checkpoint(tmp_path, monkeypatch):
+    _interrupted_run(tmp_path / "resumed", monkeypatch, at=50)
+    folder = run_dir(tmp_path / "resumed", "classic", "CartPole-v1", 0)
+    checkpoint = folder / CHECKPOINT_DIR
+    assert sorted(p.name for p in checkpoint.iterdir()) == ["model_50.zip", "progress.json", "replay_50.zip"]
+    progress = json.loads((checkpoint / "progress.json").read_text())
+    assert progress["step"] == 50 and progress["evaluations"]["timesteps"] == [30] and progress["train_s"] > 0
+    monitor_lines = len((folder / "train.monitor.csv").read_text().splitlines())
+
+    record = train("classic", "CartPole-v1", out=tmp_path / "resumed", resume=True, **RESUMABLE)
+    assert record["steps"] == 90 and record["resumed_at"] == [50]
+    assert record["eval_timesteps"] == [30, 60, 90]  # the same steps as a run that never stopped
+    assert record["train_s"] >= progress["train_s"]
+    assert not checkpoint.exists()  # removed once the run finished
+    lines = (folder / "train.monitor.csv").read_text().splitlines()
+    assert len(lines) > monitor_lines and sum(line.startswith("#") for line in lines) == 1  # appended, one header
+    np.testing.assert_allclose(np.load(folder / "evaluations.npz")["results"].mean(1), record["eval_means"])
+
+    uninterrupted = train("classic", "CartPole-v1", out=tmp_path / "plain", **RESUMABLE)
+    assert uninterrupted["eval_timesteps"] == record["eval_timesteps"] and "resumed_at" not in uninterrupted
+    resumed_model = HIEROS.load(folder / "model.zip")
+    plain_model = HIEROS.load(run_dir(tmp_path / "plain", "classic", "CartPole-v1", 0) / "model.zip")
+    assert resumed_model.level_updates() == plain_model.level_updates() != [0]
+    # a finished run is not run again
+    assert train("classic", "CartPole-v1", out=tmp_path / "resumed", resume=True, **RESUMABLE) == record
+
+
+def test_train_refuses_to_resume_with_other_options(tmp_path, monkeypatch):
+    _interrupted_run(tmp_path, monkeypatch, at=25)
+    checkpoint = run_dir(tmp_path, "classic", "CartPole-v1", 0) / CHECKPOINT_DIR
+    before = sorted(p.name for p in checkpoint.iterdir())
+    other = {**RESUMABLE, "config_overrides": {"n_levels": 2}}
+    with pytest.raises(ValueError, match=r"config_overrides \{'n_levels': 1\} \(now \{'n_levels': 2\}\)"):
+        train("classic", "CartPole-v1", out=tmp_path, resume=True, **other)
+    assert sorted(p.name for p in checkpoint.iterdir()) == before  # the checkpoint is left as it was
+    with pytest.raises(ValueError, match="checkpoint_freq must be an int >= 0"):
+        train("classic", "CartPole-v1", out=tmp_path, **{**RESUMABLE, "checkpoint_freq": -1})
