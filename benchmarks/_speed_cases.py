@@ -3,8 +3,8 @@
 ``benchmarks/speed.py`` runs this file with :func:`benchmarks._gitref.run_script` for the working tree and for a git
 ref, so ``import sb3_hieros`` here loads the package of the tree it is run for. Only the public API is used
 (``HIEROS(..., preset=, seed=, learning_starts=, config_overrides=)``, ``learn``, ``predict``), so any revision with
-that API can be timed. The Atari environment comes from this file's own ``suites.py`` (loaded by path), the same on
-both sides.
+that API can be timed. The Atari environment comes from this file's own ``suites.py`` and the JSON options are read
+by its own ``_cli.py`` (both loaded by path), the same on both sides.
 
 Parts (``--part``), each on ``--threads`` torch threads:
 
@@ -133,10 +133,11 @@ def time_predict(
     }
 
 
-def _suites() -> Any:
-    """This file's ``benchmarks/suites.py``, loaded by path (``benchmarks`` on sys.path may be another tree's)."""
-    path = pathlib.Path(__file__).resolve().parent / "suites.py"
-    spec = importlib.util.spec_from_file_location("_speed_suites", path)
+def _sibling(name: str) -> Any:
+    """The module ``name`` next to this file (e.g. ``suites``), loaded by path (``benchmarks`` on sys.path may be
+    another tree's)."""
+    path = pathlib.Path(__file__).resolve().parent / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"_speed_{name}", path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # dataclasses look their module up there
@@ -164,7 +165,7 @@ def time_pong(
     """
     from sb3_hieros import HIEROS
 
-    env = _suites().make_atari_env("Pong", seed=seed)
+    env = _sibling("suites").make_atari_env("Pong", seed=seed)
     model = HIEROS(
         "CnnPolicy",
         env,
@@ -197,9 +198,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--pong-steps", type=int, default=128)
     parser.add_argument("--pong-warmup", type=int, default=32)
     parser.add_argument("--pong-learning-starts", type=int, default=256)
-    parser.add_argument("--policy-kwargs", type=json.loads, default={}, help="policy_kwargs of the models, as JSON")
+    json_object = _sibling("_cli").json_object
+    parser.add_argument("--policy-kwargs", type=json_object, default={}, help="policy_kwargs of the models, as JSON")
     parser.add_argument(
-        "--config-overrides", type=json.loads, default={}, help="config_overrides of the models, as JSON"
+        "--config-overrides", type=json_object, default={}, help="config_overrides of the models, as JSON"
     )
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)

@@ -87,3 +87,11 @@ def test_pong_part_trains_on_tiny_settings():
     result = _speed_cases.time_pong(steps=4, warmup=2, learning_starts=24, seed=0)
     assert result["steps_per_s"] > 0 and len(result["level_updates"]) == 2
     assert result["level_updates"][0] > 0  # level 0 trained in the timed segment
+
+
+def test_speed_cases_refuse_keyword_options_that_are_not_json_objects(tmp_path, capsys):
+    out = tmp_path / "result.json"
+    with pytest.raises(SystemExit):
+        _speed_cases.main(["--part", "predict", "--out", str(out), "--policy-kwargs", "[1]"])
+    assert "--policy-kwargs: '[1]' is a JSON list; expected a JSON object" in capsys.readouterr().err
+    assert not out.exists()
