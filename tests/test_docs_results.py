@@ -85,6 +85,10 @@ CHANGE_SUITES = {
         "--tasks", "Pendulum-v1", "cartpole-balance-pixels",
         "--hieros-kwargs", '{"config_overrides": {"world_model_updates": 2}, "policy_kwargs": {"bf16": false}}',
     ],
+    "preset_world_model_updates_4": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs", '{"config_overrides": {"world_model_updates": 4}, "policy_kwargs": {"bf16": false}}',
+    ],
     "batch_size_32": [
         "--tasks", "cartpole-balance-proprio",
         "--hieros-kwargs",
