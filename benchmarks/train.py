@@ -13,7 +13,8 @@ The run trains ``--steps`` agent steps (default: the suite's budget, e.g. 100k f
 * ``checkpoint/`` with ``--checkpoint-freq N`` while the run goes on: every N agent steps the model, its replay
   (every level) and ``progress.json`` (the step, the training time so far, the periodic evaluations and the run's
   options). ``--resume`` continues a run from its checkpoint (a run without one starts afresh; a finished run, one
-  with ``result.json``, is not run again); the folder is removed when the run finishes.
+  with ``result.json``, is not run again; either is refused, naming the options, when it was written with other
+  options); the folder is removed when the run finishes.
 
 A resumed run loads the model with ``HIEROS.load`` and its replay with ``load_replay_buffer`` and goes on with
 ``reset_num_timesteps=False`` (see ``docs/resume.md``): the same updates per level as a run that never stopped, the
@@ -145,6 +146,23 @@ def write_json_atomically(path: pathlib.Path, record: dict[str, Any]) -> None:
     os.replace(tmp, path)
 
 
+def _check_same_options(saved: dict[str, Any], options: dict[str, Any], path: pathlib.Path) -> None:
+    """Refuse to resume from ``path`` (a checkpoint's progress or a finished run's record) when one of the run's
+    options that it holds differs from ``options``, naming each.
+
+    :param saved: the options (or the record) read from ``path``
+    :param options: the options of this call
+    :param path: the file they were read from, for the message
+    """
+    changed = sorted(k for k in options if k in saved and saved[k] != options[k])
+    if changed:
+        raise ValueError(
+            f"{path} belongs to a run with other options: "
+            + ", ".join(f"{k} {saved[k]!r} (now {options[k]!r})" for k in changed)
+            + "; resume with the same options, or remove the run's folder to start afresh"
+        )
+
+
 def _restore_evaluations(callback: EvalCallback, saved: dict[str, Any], step: int) -> None:
     """Give a fresh ``EvalCallback`` the evaluations of the checkpoint and its step count, so that it writes the
     whole curve and evaluates at the same steps as a run that never stopped (one env: calls = agent steps)."""
@@ -196,8 +214,8 @@ def train(
     :param save_replay_buffer: also save the replay buffer as ``replay_buffer.pkl`` (to continue the run later with
         ``HIEROS.load`` and ``load_replay_buffer``)
     :param checkpoint_freq: save a checkpoint into ``<run>/checkpoint/`` every this many agent steps (0: none)
-    :param resume: go on from the run's checkpoint if it has one (its options must equal these); return the
-        record of a finished run (``result.json`` exists) without training
+    :param resume: go on from the run's checkpoint if it has one; return the record of a finished run
+        (``result.json`` exists) without training; either must have been written with these options
     :return: the record written to ``result.json``
     """
     import torch as th
@@ -237,17 +255,13 @@ def train(
     folder = run_dir(out, suite, task, seed)
     checkpoint_dir = folder / CHECKPOINT_DIR
     if resume and (folder / "result.json").is_file():
-        return json.loads((folder / "result.json").read_text())
+        record = json.loads((folder / "result.json").read_text())
+        _check_same_options(record, options, folder / "result.json")
+        return record
     saved = None
     if resume and (checkpoint_dir / "progress.json").is_file():
         saved = json.loads((checkpoint_dir / "progress.json").read_text())
-        changed = sorted(k for k in options if saved["options"].get(k) != options[k])
-        if changed:
-            raise ValueError(
-                f"the checkpoint in {checkpoint_dir} belongs to a run with other options: "
-                + ", ".join(f"{k} {saved['options'].get(k)!r} (now {options[k]!r})" for k in changed)
-                + "; resume with the same options, or remove the folder to start afresh"
-            )
+        _check_same_options(saved["options"], options, checkpoint_dir / "progress.json")
     folder.mkdir(parents=True, exist_ok=True)
     env = _vec_env(suite, task, seed, folder / "train", env_kwargs, append=saved is not None)
     eval_env = _vec_env(suite, task, seed + EVAL_SEED_OFFSET, folder / "eval", env_kwargs, append=saved is not None)

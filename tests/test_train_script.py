@@ -127,8 +127,10 @@ def test_train_resumes_from_its_checkpoint(tmp_path, monkeypatch):
     resumed_model = HIEROS.load(folder / "model.zip")
     plain_model = HIEROS.load(run_dir(tmp_path / "plain", "classic", "CartPole-v1", 0) / "model.zip")
     assert resumed_model.level_updates() == plain_model.level_updates() != [0]
-    # a finished run is not run again
+    # a finished run is not run again, and not taken for a run with other options
     assert train("classic", "CartPole-v1", out=tmp_path / "resumed", resume=True, **RESUMABLE) == record
+    with pytest.raises(ValueError, match=r"result.json belongs to a run with other options: steps 90 \(now 120\)"):
+        train("classic", "CartPole-v1", out=tmp_path / "resumed", resume=True, **{**RESUMABLE, "steps": 120})
 
 
 def test_train_refuses_to_resume_with_other_options(tmp_path, monkeypatch):
