@@ -85,6 +85,12 @@ CHANGE_SUITES = {
         "--tasks", "Pendulum-v1", "cartpole-balance-pixels",
         "--hieros-kwargs", '{"config_overrides": {"world_model_updates": 2}, "policy_kwargs": {"bf16": false}}',
     ],
+    "preset_imag_gradient_reinforce": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs",
+        '{"config_overrides": {"world_model_updates": 2, "actor_critic": {"imag_gradient": "reinforce"}}, '
+        '"policy_kwargs": {"bf16": false}}',
+    ],
     "preset_world_model_updates_4": [
         "--tasks", "cartpole-balance-proprio",
         "--hieros-kwargs", '{"config_overrides": {"world_model_updates": 4}, "policy_kwargs": {"bf16": false}}',
