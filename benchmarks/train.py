@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import pathlib
 import shutil
 import time
@@ -51,6 +50,7 @@ from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 
 from benchmarks._cli import json_object
 from benchmarks.suites import SUITE_POLICIES, SUITES, make_env
+from sb3_hieros.save_util import atomic_path
 
 __all__ = ["CHECKPOINT_DIR", "EVAL_SEED_OFFSET", "RunCheckpoint", "run_dir", "train"]
 
@@ -126,7 +126,8 @@ class RunCheckpoint(BaseCallback):
         self.directory.mkdir(parents=True, exist_ok=True)
         self.model.save(self.directory / f"model_{step}.zip")
         self.model.save_replay_buffer(self.directory / f"replay_{step}.zip")  # type: ignore[attr-defined]
-        write_json_atomically(self.directory / "progress.json", {"step": step, **self.progress()})
+        with atomic_path(self.directory / "progress.json") as tmp:
+            tmp.write_text(json.dumps({"step": step, **self.progress()}, indent=1))
         self.last_saved = step
         for old in (*self.directory.glob("model_*.zip"), *self.directory.glob("replay_*.zip")):
             if old.stem.split("_")[1] != str(step):
@@ -134,16 +135,6 @@ class RunCheckpoint(BaseCallback):
 
     def _on_step(self) -> bool:
         return True
-
-
-def write_json_atomically(path: pathlib.Path, record: dict[str, Any]) -> None:
-    """Write ``record`` as JSON to ``path`` through a temporary file renamed over it."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w") as handle:
-        json.dump(record, handle, indent=1)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
 
 
 def _check_same_options(saved: dict[str, Any], options: dict[str, Any], path: pathlib.Path) -> None:
