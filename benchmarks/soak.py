@@ -52,6 +52,7 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
+from benchmarks._checkpoint import PeriodicCheckpoint, checkpoint_paths, checkpoint_steps
 from benchmarks._timing import environment_header
 from sb3_hieros import HIEROS
 from sb3_hieros.save_util import verify_archive
@@ -186,17 +187,6 @@ def _say(*parts: Any) -> None:
     print(*parts, flush=True)
 
 
-def checkpoint_paths(directory: pathlib.Path, step: int) -> tuple[pathlib.Path, pathlib.Path]:
-    """The model and replay files of the checkpoint at ``step``."""
-    return directory / f"model_{step}.zip", directory / f"replay_{step}.zip"
-
-
-def checkpoint_steps(directory: pathlib.Path) -> list[int]:
-    """Steps of the checkpoints whose model and replay files both exist, newest first."""
-    steps = {int(p.stem.split("_")[1]) for p in directory.glob("model_*.zip")}
-    return sorted((s for s in steps if checkpoint_paths(directory, s)[1].exists()), reverse=True)
-
-
 def corrupt_files(directory: pathlib.Path) -> list[str]:
     """Checkpoint files (temporary files of killed saves excluded) that are not intact zips matching their checksums."""
     bad = []
@@ -210,7 +200,7 @@ def corrupt_files(directory: pathlib.Path) -> list[str]:
     return bad
 
 
-class FaultCheckpoint(BaseCallback):
+class FaultCheckpoint(PeriodicCheckpoint):
     """Checkpoints at the start of every ``every``-th vec-env step and protocol lines for the orchestrator.
 
     ``STEP n`` after every step, ``TRAIN n`` when the loop is about to make an update, ``SAVE_BEGIN n`` /
@@ -220,26 +210,11 @@ class FaultCheckpoint(BaseCallback):
     :param every: steps between checkpoints
     """
 
-    def __init__(self, directory: pathlib.Path, every: int) -> None:
-        super().__init__()
-        self.directory = directory
-        self.every = every
-        self.last_saved = -1
-
-    def _on_training_start(self) -> None:
-        self.last_saved = self.model.num_timesteps  # the checkpoint resumed from (or nothing to save at step 0)
-
-    def _on_rollout_start(self) -> None:
-        step = self.model.num_timesteps
-        if step % self.every or step == self.last_saved:
-            return
+    def _save(self, step: int) -> None:
         start = time.perf_counter()
         _say("SAVE_BEGIN", step)
-        model_path, replay_path = checkpoint_paths(self.directory, step)
-        self.model.save(model_path)
-        self.model.save_replay_buffer(replay_path)  # type: ignore[attr-defined]
+        super()._save(step)
         _say("SAVE_END", step, f"{time.perf_counter() - start:.4f}")
-        self.last_saved = step
         for old in checkpoint_steps(self.directory)[2:]:
             for path in checkpoint_paths(self.directory, old):
                 path.unlink(missing_ok=True)

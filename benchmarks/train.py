@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 
+from benchmarks._checkpoint import PeriodicCheckpoint, checkpoint_paths
 from benchmarks._cli import json_object
 from benchmarks.suites import SUITE_POLICIES, SUITES, make_env
 from sb3_hieros.save_util import atomic_path
@@ -96,13 +97,12 @@ def check_counts(**counts: Any) -> None:
             raise ValueError(f"{name} must be an int >= 1, got {value!r}")
 
 
-class RunCheckpoint(BaseCallback):
+class RunCheckpoint(PeriodicCheckpoint):
     """Saves a run's checkpoint into ``directory`` at the start of every ``every``-th vec-env step.
 
-    At the start of a step the previous step's transition is stored and its updates are made, so a run resumed from
-    the checkpoint lacks nothing (``docs/resume.md``). The files are ``model_<step>.zip``, ``replay_<step>.zip``
-    and, written last and atomically, ``progress.json`` naming the step: a save interrupted at any point leaves the
-    previous checkpoint usable. Older model and replay files are removed once ``progress.json`` names the new ones.
+    The files are ``model_<step>.zip``, ``replay_<step>.zip`` and, written last and atomically, ``progress.json``
+    naming the step: a save interrupted at any point leaves the previous checkpoint usable. Older model and replay
+    files are removed once ``progress.json`` names the new ones.
 
     :param directory: the checkpoint folder (created on the first save)
     :param every: agent steps between checkpoints
@@ -110,31 +110,17 @@ class RunCheckpoint(BaseCallback):
     """
 
     def __init__(self, directory: pathlib.Path, every: int, progress: Any) -> None:
-        super().__init__()
-        self.directory = directory
-        self.every = every
+        super().__init__(directory, every)
         self.progress = progress
-        self.last_saved = -1
 
-    def _on_training_start(self) -> None:
-        self.last_saved = self.model.num_timesteps  # the checkpoint resumed from (or nothing to save at step 0)
-
-    def _on_rollout_start(self) -> None:
-        step = self.model.num_timesteps
-        if step % self.every or step == self.last_saved:
-            return
-        self.directory.mkdir(parents=True, exist_ok=True)
-        self.model.save(self.directory / f"model_{step}.zip")
-        self.model.save_replay_buffer(self.directory / f"replay_{step}.zip")  # type: ignore[attr-defined]
+    def _save(self, step: int) -> None:
+        super()._save(step)
         with atomic_path(self.directory / "progress.json") as tmp:
             tmp.write_text(json.dumps({"step": step, **self.progress()}, indent=1))
-        self.last_saved = step
+        kept = checkpoint_paths(self.directory, step)
         for old in (*self.directory.glob("model_*.zip"), *self.directory.glob("replay_*.zip")):
-            if old.stem.split("_")[1] != str(step):
+            if old not in kept:
                 old.unlink(missing_ok=True)
-
-    def _on_step(self) -> bool:
-        return True
 
 
 def _check_same_options(saved: dict[str, Any], options: dict[str, Any], path: pathlib.Path) -> None:
@@ -272,8 +258,9 @@ def train(
         )
     else:
         step = int(saved["step"])
-        model = HIEROS.load(checkpoint_dir / f"model_{step}.zip", env=env, device=device, verbose=verbose)
-        model.load_replay_buffer(checkpoint_dir / f"replay_{step}.zip")
+        model_path, replay_path = checkpoint_paths(checkpoint_dir, step)
+        model = HIEROS.load(model_path, env=env, device=device, verbose=verbose)
+        model.load_replay_buffer(replay_path)
         model.set_random_seed(seed + step)
     callbacks: list[BaseCallback] = []
     evaluation = None
