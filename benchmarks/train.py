@@ -30,7 +30,7 @@ Evaluation uses a separate environment seeded with ``seed + 10000`` and the dete
 Examples::
 
     python -m benchmarks.train --suite atari100k --task Pong --seed 0 --preset paper --out runs
-    python -m benchmarks.train --suite atari100k --task Pong --preset small --checkpoint-freq 5000 --resume \
+    python -m benchmarks.train --suite atari100k --task Pong --preset small --checkpoint-freq 5000 --resume \\
         --out runs  # run again after an interruption to go on from the last checkpoint
     python -m benchmarks.train --suite classic --task CartPole-v1 --preset small --steps 5000 --eval-freq 1000 \\
         --eval-episodes 10 --out runs --config-overrides '{"n_levels": 1}'
