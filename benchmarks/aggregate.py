@@ -51,6 +51,7 @@ __all__ = [
     "human_normalized_score",
     "load_results",
     "plot_curves",
+    "run_cost",
     "scores_by_task",
     "stratified_bootstrap_ci",
     "task_table",
@@ -221,6 +222,20 @@ def _mean_std(values: np.ndarray) -> str:
     return f"{values.mean():,.1f} +- {values.std():,.1f} ({values.size})"
 
 
+def run_cost(records: Sequence[dict[str, Any]], suite: str, task: str) -> str:
+    """The preset(s) and the mean wall time per run of one task's runs, e.g. ``"small, 4.2 h"``.
+
+    :param records: results of :func:`load_results`
+    :param suite: the suite to select
+    :param task: the task to select
+    :return: the presets joined by ``/`` and the mean ``wall_s`` in hours (left out where no record has it)
+    """
+    runs = [r for r in records if r["suite"] == suite and r["task"] == task]
+    presets = "/".join(dict.fromkeys(str(r.get("preset", "?")) for r in runs))
+    hours = [float(r["wall_s"]) / 3600 for r in runs if "wall_s" in r]
+    return f"{presets}, {np.mean(hours):.1f} h" if hours else presets
+
+
 def atari_table(records: Sequence[dict[str, Any]], reps: int = 2000, seed: int = 0) -> tuple[str, dict[str, Any]]:
     """Markdown table of the Atari100k runs next to thesis Table 5.1, and the aggregate numbers.
 
@@ -233,20 +248,22 @@ def atari_table(records: Sequence[dict[str, Any]], reps: int = 2000, seed: int =
     table = thesis_table("atari100k")
     scores = scores_by_task(records, "atari100k")
     lines = [
-        "| Game | Random | Human | Ours (mean +- std (seeds)) | Ours HNS % | HIEROS (thesis) | DreamerV3 (thesis) |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        "| Game | Random | Human | Ours (mean +- std (seeds)) | Ours HNS % | Ours: preset, wall time per run "
+        "| HIEROS (thesis) | DreamerV3 (thesis) |",
+        "|---|---:|---:|---:|---:|---|---:|---:|",
     ]
     hns: dict[str, np.ndarray] = {}
     for game, values in scores.items():
         label = ATARI100K_THESIS_LABELS.get(game)
         row = table.get(label) if label else None
         if row is None:
-            lines.append(f"| {game} | | | {_mean_std(values)} | | | |")
+            lines.append(f"| {game} | | | {_mean_std(values)} | | {run_cost(records, 'atari100k', game)} | | |")
             continue
         hns[game] = np.asarray(human_normalized_score(values, row["random"], row["human"]))
         lines.append(
             f"| {label} | {_fmt(row['random'], 0)} | {_fmt(row['human'], 0)} | {_mean_std(values)} "
-            f"| {100 * hns[game].mean():.1f} | {_fmt(row['hieros'], 0)} | {_fmt(row['dreamerv3'], 0)} |"
+            f"| {100 * hns[game].mean():.1f} | {run_cost(records, 'atari100k', game)} | {_fmt(row['hieros'], 0)} "
+            f"| {_fmt(row['dreamerv3'], 0)} |"
         )
     summary: dict[str, Any] = {"hns": {game: values.tolist() for game, values in hns.items()}}
     if hns:
@@ -264,7 +281,7 @@ def atari_table(records: Sequence[dict[str, Any]], reps: int = 2000, seed: int =
             summary[key] = {"value": value, "ci": [100 * low, 100 * high]}
             lines.append(
                 f"| **{names[key]}** (HNS %, {len(per_task)} games) | | | | {value:.1f} [{100 * low:.1f}, "
-                f"{100 * high:.1f}] | {_fmt(THESIS_ATARI_AGGREGATES['hieros'][key], 0)} "
+                f"{100 * high:.1f}] | | {_fmt(THESIS_ATARI_AGGREGATES['hieros'][key], 0)} "
                 f"| {_fmt(THESIS_ATARI_AGGREGATES['dreamerv3'][key], 0)} |"
             )
     return "\n".join(lines), summary
@@ -279,14 +296,15 @@ def dmc_table(records: Sequence[dict[str, Any]]) -> tuple[str, dict[str, Any]]:
     table = thesis_table("dmc_vision")
     scores = scores_by_task(records, "dmc_vision")
     lines = [
-        "| Task | Ours (mean +- std (seeds)) | HIEROS (thesis) | DreamerV3 (thesis) |",
-        "|---|---:|---:|---:|",
+        "| Task | Ours (mean +- std (seeds)) | Ours: preset, wall time per run | HIEROS (thesis) "
+        "| DreamerV3 (thesis) |",
+        "|---|---:|---|---:|---:|",
     ]
     for task, values in scores.items():
         row = table.get(DMC_VISION_THESIS_LABELS.get(task, ""), {})
         lines.append(
-            f"| {DMC_VISION_THESIS_LABELS.get(task, task)} | {_mean_std(values)} | {_fmt(row.get('hieros'))} "
-            f"| {_fmt(row.get('dreamerv3'))} |"
+            f"| {DMC_VISION_THESIS_LABELS.get(task, task)} | {_mean_std(values)} "
+            f"| {run_cost(records, 'dmc_vision', task)} | {_fmt(row.get('hieros'))} | {_fmt(row.get('dreamerv3'))} |"
         )
     summary: dict[str, Any] = {}
     if scores:
@@ -294,7 +312,7 @@ def dmc_table(records: Sequence[dict[str, Any]]) -> tuple[str, dict[str, Any]]:
         summary = {"mean": aggregate_mean(per_task), "median": aggregate_median(per_task)}
         for key in ("mean", "median"):
             lines.append(
-                f"| **{key.capitalize()}** ({len(per_task)} tasks) | {summary[key]:,.1f} "
+                f"| **{key.capitalize()}** ({len(per_task)} tasks) | {summary[key]:,.1f} | "
                 f"| {_fmt(THESIS_DMC_AGGREGATES['hieros'][key])} | {_fmt(THESIS_DMC_AGGREGATES['dreamerv3'][key])} |"
             )
     return "\n".join(lines), summary
@@ -307,10 +325,10 @@ def task_table(records: Sequence[dict[str, Any]], suite: str) -> str:
     :param suite: the suite to select
     :return: the table
     """
-    lines = ["| Task | Ours (mean +- std (seeds)) | Steps |", "|---|---:|---:|"]
+    lines = ["| Task | Ours (mean +- std (seeds)) | Steps | Preset, wall time per run |", "|---|---:|---:|---|"]
     steps: dict[str, int] = {r["task"]: int(r.get("steps", 0)) for r in records if r["suite"] == suite}
     for task, values in scores_by_task(records, suite).items():
-        lines.append(f"| {task} | {_mean_std(values)} | {steps[task]:,} |")
+        lines.append(f"| {task} | {_mean_std(values)} | {steps[task]:,} | {run_cost(records, suite, task)} |")
     return "\n".join(lines)
 
 

@@ -17,17 +17,20 @@ from benchmarks.aggregate import (
     dmc_table,
     human_normalized_score,
     load_results,
+    run_cost,
     stratified_bootstrap_ci,
     thesis_table,
 )
 
 
-def _record(suite, task, seed, score, curve=((10, 1.0), (20, 2.0))):
+def _record(suite, task, seed, score, curve=((10, 1.0), (20, 2.0)), wall_s=7200.0):
     return {
         "suite": suite,
         "task": task,
         "seed": seed,
+        "preset": "small",
         "final_mean": score,
+        "wall_s": wall_s,
         "steps": 20,
         "eval_timesteps": [t for t, _ in curve],
         "eval_means": [m for _, m in curve],
@@ -86,11 +89,11 @@ def test_atari_table_has_thesis_numbers():
     assert len(table) == 25 and table["Pong"] == {
         "random": -21, "human": 15, "simple": 13, "twm": 18, "iris": 15, "director": -18, "dreamerv3": 18, "hieros": 5,
     }  # fmt: skip
-    records = [_record("atari100k", "Pong", s, v) for s, v in enumerate((5.0, -3.0))]
+    records = [_record("atari100k", "Pong", s, v, wall_s=w) for s, v, w in ((0, 5.0, 9000.0), (1, -3.0, 18000.0))]
     records += [_record("atari100k", "Krull", 0, 1598.0), _record("atari100k", "UpNDown", 0, 3000.0)]
     markdown, summary = atari_table(records, reps=50)
     pong = next(line for line in markdown.splitlines() if line.startswith("| Pong |"))
-    assert "| -21 | 15 | 1.0 +- 4.0 (2) |" in pong and pong.endswith("| 5 | 18 |")
+    assert "| -21 | 15 | 1.0 +- 4.0 (2) |" in pong and pong.endswith("| small, 3.8 h | 5 | 18 |")
     assert summary["hns"]["Pong"] == pytest.approx([26 / 36, 18 / 36])
     assert summary["hns"]["Krull"] == [0.0] and "UpNDown" not in summary["hns"]  # no thesis row
     assert summary["mean"]["value"] == pytest.approx(100 * (22 / 36 + 0.0) / 2)
@@ -104,7 +107,7 @@ def test_dmc_table_and_files(tmp_path):
     assert len(table) == 20 and table["Cup Catch"]["hieros"] == 942.8
     records = [_record("dmc_vision", "ball_in_cup-catch", s, v) for s, v in enumerate((900.0, 950.0))]
     markdown, summary = dmc_table(records)
-    assert "| Cup Catch | 925.0 +- 25.0 (2) | 942.8 | 957.1 |" in markdown
+    assert "| Cup Catch | 925.0 +- 25.0 (2) | small, 2.0 h | 942.8 | 957.1 |" in markdown
     assert summary == {"mean": 925.0, "median": 925.0}
     # the whole pipeline from result files
     for i, record in enumerate([*records, _record("classic", "CartPole-v1", 0, 500.0)]):
@@ -114,8 +117,17 @@ def test_dmc_table_and_files(tmp_path):
     loaded = load_results(tmp_path / "runs")
     assert [r["task"] for r in loaded] == ["CartPole-v1", "ball_in_cup-catch", "ball_in_cup-catch"]
     markdown, _ = aggregate(loaded, out=tmp_path / "agg", reps=20)
-    assert "### classic" in markdown and "| CartPole-v1 | 500.0 +- 0.0 (1) | 20 |" in markdown
+    assert "### classic" in markdown and "| CartPole-v1 | 500.0 +- 0.0 (1) | 20 | small, 2.0 h |" in markdown
     for name in ("aggregate.md", "aggregate.json", "dmc_vision_curves.png", "classic_curves.png"):
         assert (tmp_path / "agg" / name).is_file(), name
     with pytest.raises(ValueError, match="no such result"):
         load_results(tmp_path / "missing")
+
+
+def test_run_cost():
+    records = [_record("classic", "CartPole-v1", 0, 500.0, wall_s=3600.0), _record("classic", "CartPole-v1", 1, 490.0)]
+    records[1]["preset"] = "paper"
+    assert run_cost(records, "classic", "CartPole-v1") == "small/paper, 1.5 h"
+    del records[0]["wall_s"], records[1]["wall_s"]
+    assert run_cost(records, "classic", "CartPole-v1") == "small/paper"  # older records without a wall time
+    assert run_cost(records, "classic", "Pendulum-v1") == ""
