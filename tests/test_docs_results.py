@@ -91,6 +91,11 @@ CHANGE_SUITES = {
         '{"config_overrides": {"world_model_updates": 2, "actor_critic": {"imag_gradient": "reinforce"}}, '
         '"policy_kwargs": {"bf16": false}}',
     ],
+    "preset_imag_horizon_32": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs",
+        '{"config_overrides": {"world_model_updates": 2, "imag_horizon": 32}, "policy_kwargs": {"bf16": false}}',
+    ],
     "preset_world_model_updates_4": [
         "--tasks", "cartpole-balance-proprio",
         "--hieros-kwargs", '{"config_overrides": {"world_model_updates": 4}, "policy_kwargs": {"bf16": false}}',
