@@ -3,7 +3,8 @@
 * **Atari100k** (thesis Table 5.1): per game our final score (mean +- std over seeds) and its human-normalised score
   (HNS, :func:`human_normalized_score`, with the table's random and human scores) next to the thesis' HIEROS and
   DreamerV3 scores; below, the mean, median, interquartile mean (IQM) and optimality gap of the HNS (in %, as the
-  thesis reports them) with 95 % stratified-bootstrap confidence intervals, next to the thesis' values.
+  thesis reports them) with 95 % stratified-bootstrap confidence intervals, next to the thesis' values where the runs
+  cover all 25 games (over fewer games the two would aggregate different sets).
 * **DMC vision** (thesis Table 5.2): raw scores per task next to the thesis' HIEROS and DreamerV3 columns, with
   mean and median rows.
 * Other suites (``dmc_proprio``, ``classic``): our scores per task.
@@ -236,6 +237,16 @@ def run_cost(records: Sequence[dict[str, Any]], suite: str, task: str) -> str:
     return f"{presets}, {np.mean(hours):.1f} h" if hours else presets
 
 
+def _coverage(ours: int, thesis: int, noun: str) -> tuple[str, bool]:
+    """How many of the thesis' tasks an aggregate row covers, and whether the thesis' aggregate compares with it.
+
+    The thesis' aggregates are taken over all its tasks; over fewer they would compare different sets, so they are
+    shown only where ours cover as many ("-" elsewhere).
+    """
+    complete = ours >= thesis
+    return (f"{ours} {noun}s" if complete else f"{ours} of the thesis' {thesis} {noun}s"), complete
+
+
 def atari_table(records: Sequence[dict[str, Any]], reps: int = 2000, seed: int = 0) -> tuple[str, dict[str, Any]]:
     """Markdown table of the Atari100k runs next to thesis Table 5.1, and the aggregate numbers.
 
@@ -275,14 +286,15 @@ def atari_table(records: Sequence[dict[str, Any]], reps: int = 2000, seed: int =
             "optimality_gap": aggregate_optimality_gap,
         }
         names = {"mean": "Mean", "median": "Median", "iqm": "IQM", "optimality_gap": "Optimality Gap"}
+        games, complete = _coverage(len(per_task), len(table), "game")
         for key, statistic in statistics.items():
             value = 100 * statistic(per_task)
             low, high = stratified_bootstrap_ci(per_task, statistic, reps=reps, seed=seed)
             summary[key] = {"value": value, "ci": [100 * low, 100 * high]}
+            thesis = [_fmt(THESIS_ATARI_AGGREGATES[a][key], 0) if complete else "-" for a in ("hieros", "dreamerv3")]
             lines.append(
-                f"| **{names[key]}** (HNS %, {len(per_task)} games) | | | | {value:.1f} [{100 * low:.1f}, "
-                f"{100 * high:.1f}] | | {_fmt(THESIS_ATARI_AGGREGATES['hieros'][key], 0)} "
-                f"| {_fmt(THESIS_ATARI_AGGREGATES['dreamerv3'][key], 0)} |"
+                f"| **{names[key]}** (HNS %, {games}) | | | | {value:.1f} [{100 * low:.1f}, {100 * high:.1f}] | "
+                f"| {thesis[0]} | {thesis[1]} |"
             )
     return "\n".join(lines), summary
 
@@ -310,11 +322,11 @@ def dmc_table(records: Sequence[dict[str, Any]]) -> tuple[str, dict[str, Any]]:
     if scores:
         per_task = list(scores.values())
         summary = {"mean": aggregate_mean(per_task), "median": aggregate_median(per_task)}
+        covered = sum(DMC_VISION_THESIS_LABELS.get(task) in table for task in scores)
+        tasks, complete = _coverage(covered, len(table), "task")
         for key in ("mean", "median"):
-            lines.append(
-                f"| **{key.capitalize()}** ({len(per_task)} tasks) | {summary[key]:,.1f} | "
-                f"| {_fmt(THESIS_DMC_AGGREGATES['hieros'][key])} | {_fmt(THESIS_DMC_AGGREGATES['dreamerv3'][key])} |"
-            )
+            thesis = [_fmt(THESIS_DMC_AGGREGATES[a][key]) if complete else "-" for a in ("hieros", "dreamerv3")]
+            lines.append(f"| **{key.capitalize()}** ({tasks}) | {summary[key]:,.1f} | | {thesis[0]} | {thesis[1]} |")
     return "\n".join(lines), summary
 
 

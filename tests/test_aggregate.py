@@ -99,7 +99,16 @@ def test_atari_table_has_thesis_numbers():
     assert summary["mean"]["value"] == pytest.approx(100 * (22 / 36 + 0.0) / 2)
     low, high = summary["mean"]["ci"]
     assert low <= summary["mean"]["value"] <= high
-    assert "| **IQM** (HNS %, 2 games) |" in markdown and markdown.splitlines()[-1].endswith("| 49 | N/A |")
+    # two of 25 games: the thesis' aggregates (over all 25) are left out of the comparison
+    assert "| **IQM** (HNS %, 2 of the thesis' 25 games) |" in markdown
+    assert markdown.splitlines()[-1].endswith("] | | - | - |")
+    # every game: the thesis' aggregates next to ours
+    from benchmarks.suites import ATARI100K_THESIS_LABELS
+
+    records = [_record("atari100k", game, 0, table[label]["human"]) for game, label in ATARI100K_THESIS_LABELS.items()]
+    markdown, summary = atari_table(records, reps=20)
+    assert summary["mean"]["value"] == pytest.approx(100.0)
+    assert "| **IQM** (HNS %, 25 games) | | | | 100.0 [100.0, 100.0] | | 53 | N/A |" in markdown
 
 
 def test_dmc_table_and_files(tmp_path):
@@ -109,6 +118,7 @@ def test_dmc_table_and_files(tmp_path):
     markdown, summary = dmc_table(records)
     assert "| Cup Catch | 925.0 +- 25.0 (2) | small, 2.0 h | 942.8 | 957.1 |" in markdown
     assert summary == {"mean": 925.0, "median": 925.0}
+    assert "| **Mean** (1 of the thesis' 20 tasks) | 925.0 | | - | - |" in markdown
     # the whole pipeline from result files
     for i, record in enumerate([*records, _record("classic", "CartPole-v1", 0, 500.0)]):
         folder = tmp_path / "runs" / str(i)
