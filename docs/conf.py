@@ -39,6 +39,7 @@ exclude_patterns = [
     "cpu_suite/*.md",
     "cpu_suite/*/*.md",
     "sample_efficiency/*.md",
+    "atari100k/*.md",
 ]
 myst_enable_extensions = ["colon_fence", "dollarmath"]
 myst_heading_anchors = 3

@@ -161,3 +161,12 @@ def test_demo_run_is_recorded_and_its_curve_redrawn(tmp_path):
     results = np.load(tmp_path / "evaluations.npz")["results"]
     assert summary["eval_mean_returns"] == pytest.approx(results.mean(1).tolist())
     assert (tmp_path / "learning_curve.png").stat().st_size > 10_000
+
+
+def test_atari100k_table_is_made_from_result_json(tmp_path):
+    from benchmarks import aggregate
+
+    folder = DOCS / "atari100k"
+    aggregate.main([str(folder), "--out", str(tmp_path)])
+    assert (tmp_path / "aggregate.md").read_text() == (folder / "aggregate.md").read_text()
+    assert "```{include} ../atari100k/aggregate.md" in (DOCS / "results" / "atari100k.md").read_text()
