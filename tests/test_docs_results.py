@@ -96,6 +96,12 @@ CHANGE_SUITES = {
         "--hieros-kwargs",
         '{"config_overrides": {"world_model_updates": 2, "imag_horizon": 32}, "policy_kwargs": {"bf16": false}}',
     ],
+    "preset_imag_horizon_32_starts_025": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs",
+        '{"config_overrides": {"world_model_updates": 2, "imag_horizon": 32, "imag_start_fraction": 0.25}, '
+        '"policy_kwargs": {"bf16": false}}',
+    ],
     "preset_world_model_updates_4": [
         "--tasks", "cartpole-balance-proprio",
         "--hieros-kwargs", '{"config_overrides": {"world_model_updates": 4}, "policy_kwargs": {"bf16": false}}',
