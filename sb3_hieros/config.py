@@ -28,6 +28,8 @@ TERMINAL_REWARDS = ("kept", "zeroed")
 RETURN_NORMALIZATIONS = ("combined", "per_term")
 #: Which critic values pass gradient to the actions under dynamics backpropagation (``ActorCriticConfig``).
 VALUE_GRADIENTS = ("all", "returns", "none")
+#: Which critic's values form the lambda-returns and the baseline of the actor-critic (``ActorCriticConfig``).
+RETURN_CRITICS = ("fast", "slow")
 
 
 def _check_types(obj: object) -> None:
@@ -207,6 +209,10 @@ class ActorCriticConfig:
         lambda-returns (DreamerV2's dynamics objective); ``"none"``: every value is held fixed, so the gradient comes
         through the imagined rewards of the horizon alone (:class:`~sb3_hieros.agent.actor_critic.ActorCritic`).
         REINFORCE is unaffected
+    :param return_critic: which copy of each critic values the imagined states in the lambda-returns and the baseline:
+        ``"fast"`` (default, DreamerV3's code) or ``"slow"``, its EMA copy (the thesis' baseline, eq. 4.9, and
+        DreamerV2's target critic). Under dynamics backpropagation the actor then follows the input gradient of a
+        critic averaged over recent updates (:class:`~sb3_hieros.agent.actor_critic.ActorCritic`)
     :param replay_value_loss: weight of DreamerV3's replay value loss (its later releases: 0.3; not in the thesis):
         each critic also regresses lambda-returns along the replayed sequences, computed from the recorded rewards
         and bootstrapped with the imagined returns
@@ -232,6 +238,7 @@ class ActorCriticConfig:
     slow_critic_fraction: float = 0.02
     return_normalization: str = "combined"
     value_gradient: str = "all"
+    return_critic: str = "fast"
     replay_value_loss: float = 0.0
 
     def __post_init__(self) -> None:
@@ -241,6 +248,7 @@ class ActorCriticConfig:
         _check_fraction(self, "discount", "lambda_", "unimix", "slow_critic_fraction")
         _check_choice(self, "imag_gradient", IMAG_GRADIENTS)
         _check_choice(self, "value_gradient", VALUE_GRADIENTS)
+        _check_choice(self, "return_critic", RETURN_CRITICS)
         for name in ("entropy", "extrinsic_weight", "subgoal_weight", "novelty_weight", "replay_value_loss"):
             if getattr(self, name) < 0:
                 raise ValueError(f"ActorCriticConfig.{name} must be >= 0, got {getattr(self, name)!r}")

@@ -402,6 +402,40 @@ def test_dynamics_value_gradient_chooses_the_values_that_pass_gradient(value_gra
         ActorCritic(5, "box", 2, value_gradient="baseline")
 
 
+@pytest.mark.parametrize("gradient", ["dynamics", "reinforce"])
+def test_slow_return_critic_values_the_returns_and_baseline(gradient):
+    ac = ActorCritic(
+        5, "box", 2, hidden=16, layers=1, reward_weights={"extrinsic": 1.0}, gradient=gradient, return_critic="slow"
+    )
+    critic = ac.critics["extrinsic"]
+    gen = th.Generator().manual_seed(7)
+    with th.no_grad():  # fast and slow copies that disagree
+        for fast, slow in zip(critic.net.parameters(), critic.slow_net.parameters(), strict=True):
+            fast.copy_(th.randn(fast.shape, generator=gen) * 0.5)
+            slow.copy_(th.randn(slow.shape, generator=gen) * 0.5)
+    h, n = 4, 8
+    feats = th.randn(h + 1, n, 5, generator=gen).requires_grad_(True)
+    actions = th.rand(h, n, 2, generator=gen) * 2 - 1
+    rewards = {"extrinsic": th.rand(h + 1, n, generator=gen)}
+    actor_loss, critic_loss, metrics = ac.loss(feats, actions, rewards, th.ones(h + 1, n), update_normalizers=False)
+
+    def returns_of(slow):
+        with th.no_grad():
+            values = critic.value(feats, slow=slow)
+        return lambda_returns(rewards["extrinsic"][1:], values[:-1], th.ones(h, n), values[-1], ac.discount, ac.lambda_)
+
+    assert th.allclose(metrics["extrinsic/return_mean"], returns_of(slow=True).mean())
+    assert not th.allclose(returns_of(slow=True).mean(), returns_of(slow=False).mean())
+    critic_loss.backward(retain_graph=True)  # the fast critic learns; the slow copy only follows it by EMA
+    assert all(p.grad is not None for p in critic.net.parameters())
+    assert all(p.grad is None for p in critic.slow_net.parameters())
+    if gradient == "dynamics":  # the slow copy's input gradient reaches the imagined states
+        (grad,) = th.autograd.grad(actor_loss, feats)
+        assert grad[1:].abs().sum() > 0
+    with pytest.raises(ValueError, match="return_critic must be one of"):
+        ActorCritic(5, "box", 2, return_critic="target")
+
+
 def test_reinforce_learns_a_bandit():
     th.manual_seed(0)
     ac = ActorCritic(4, "discrete", 3, hidden=16, layers=1, reward_weights={"extrinsic": 1.0}, discount=1.0)

@@ -92,3 +92,11 @@ def test_world_model_lr_zero_is_a_frozen_model_and_negative_is_refused():
     assert get_preset("small").replace(world_model={"lr": 0.0}).world_model.lr == 0.0
     with pytest.raises(ValueError, match=r"WorldModelConfig\.lr must be a number >= 0, got -0\.001"):
         get_preset("small").replace(world_model={"lr": -1e-3})
+
+
+def test_return_critic_is_checked():
+    small = get_preset("small")
+    assert small.actor_critic.return_critic == "fast"
+    assert small.replace(actor_critic={"return_critic": "slow"}).actor_critic.return_critic == "slow"
+    with pytest.raises(ValueError, match=r"return_critic.*'target'"):
+        small.replace(actor_critic={"return_critic": "target"})

@@ -82,6 +82,7 @@ THESIS: dict[str, str] = {
     "actor_critic.slow_critic_fraction": "4.3.2 (value: public code)",
     "actor_critic.return_normalization": "4.3.2, eq. 4.3 (not in the thesis table)",
     "actor_critic.value_gradient": "not in the thesis (REINFORCE there; value: DreamerV3)",
+    "actor_critic.return_critic": "4.3.2, eq. 4.9 (slow baseline); default: DreamerV3's fast critic",
     "actor_critic.replay_value_loss": "not in the thesis (critics on imagination only; value: later DreamerV3)",
     "subgoal.n_cat": "4.3.1, table 4.6.3 (subgoal shape 8x8)",
     "subgoal.n_classes": "4.3.1, table 4.6.3 (subgoal shape 8x8)",

@@ -9,7 +9,8 @@ actions and backpropagation through the imagined dynamics for Box actions, plus 
 The thesis states its value loss as a squared TD(0) error (eq. 4.7, 4.8) and its baseline as the slow critics
 (eq. 4.9), but says that HIEROS adopts DreamerV3's actor-critic unchanged apart from the per-term critics; we follow
 DreamerV3 (and the reference): critics regress lambda-returns with the two-hot NLL, and returns and baseline come from
-the fast critics, the slow critics acting as a regulariser of the critic loss.
+the fast critics, the slow critics acting as a regulariser of the critic loss (``return_critic="slow"`` takes returns
+and baseline from the slow critics instead, as eq. 4.9 and DreamerV2's target critic do).
 
 The module knows nothing about the world model: the caller imagines a trajectory and hands in features, actions,
 per-term rewards and continue probabilities (time-major, see :meth:`ActorCritic.loss`).
@@ -26,7 +27,7 @@ from torch import nn
 from torch.func import functional_call
 
 from sb3_hieros.agent.returns import ReturnNormalizer, cumulative_discount, lambda_returns, replay_lambda_returns
-from sb3_hieros.config import VALUE_GRADIENTS
+from sb3_hieros.config import RETURN_CRITICS, VALUE_GRADIENTS
 from sb3_hieros.nn.distributions import (
     BoundedNormal,
     OneHotCategoricalST,
@@ -247,14 +248,17 @@ class Critic(nn.Module):
         """
         return TwoHotSymlog(self.net(feat), self.bins, self.bins_antisymmetric)
 
-    def value(self, feat: th.Tensor, detach_params: bool = False) -> th.Tensor:
-        """Expected value (raw units) of the fast critic.
+    def value(self, feat: th.Tensor, detach_params: bool = False, slow: bool = False) -> th.Tensor:
+        """Expected value (raw units) of the fast critic, or of its slow copy.
 
         :param feat: (*B, feat_dim)
         :param detach_params: let gradients flow into ``feat`` but not into the critic's parameters (for the
             dynamics-backprop actor loss)
+        :param slow: the slow copy's value; its parameters never take gradients, ``feat`` does where it requires them
         :return: (*B)
         """
+        if slow:
+            return TwoHotSymlog(self.slow_net(feat), self.bins, self.bins_antisymmetric).mean
         if not detach_params:
             return self(feat).mean
         params = {name: p.detach() for name, p in self.net.named_parameters()}
@@ -380,6 +384,10 @@ class ActorCritic(nn.Module):
     with eta = ``entropy_coef`` and w_t the cumulative discount. Critic k minimises the two-hot NLL of R^k_t plus the
     slow-critic regulariser, weighted by w_t.
 
+    ``return_critic="slow"`` computes R^k and v^k(s_t) with the slow copy of critic k (its EMA over recent updates)
+    instead of the fast one, in the returns the critics regress as well as in the actor's advantage; under dynamics
+    backpropagation the value path then follows the slow copy's input gradient.
+
     :param feat_dim: actor / critic input size (:func:`actor_input_dim`)
     :param action_kind: ``"discrete"`` or ``"box"``
     :param action_dim: classes (discrete) or dims (box)
@@ -404,6 +412,8 @@ class ActorCritic(nn.Module):
         switch). Dynamics backpropagation always uses A_t.
     :param value_gradient: with ``gradient="dynamics"``, the values that pass gradient: ``"all"``, ``"returns"``
         or ``"none"`` (see above)
+    :param return_critic: ``"fast"`` (default) or ``"slow"``: the critic copy whose values enter the lambda-returns
+        and the baseline (see above)
     :param replay_value_scale: weight of the replay value loss (:meth:`replay_value_loss`; DreamerV3's later
         releases: 0.3), 0 to train the critics on imagination alone (the thesis)
     """
@@ -431,6 +441,7 @@ class ActorCritic(nn.Module):
         reinforce_advantage: str = "normalized",
         return_normalization: str = "combined",
         value_gradient: str = "all",
+        return_critic: str = "fast",
         replay_value_scale: float = 0.0,
     ) -> None:
         super().__init__()
@@ -440,6 +451,9 @@ class ActorCritic(nn.Module):
         if value_gradient not in VALUE_GRADIENTS:
             raise ValueError(f"value_gradient must be one of {VALUE_GRADIENTS}, got {value_gradient!r}")
         self.value_gradient = value_gradient
+        if return_critic not in RETURN_CRITICS:
+            raise ValueError(f"return_critic must be one of {RETURN_CRITICS}, got {return_critic!r}")
+        self.return_critic = return_critic
         if reinforce_advantage not in ("normalized", "raw"):
             raise ValueError(f"reinforce_advantage must be 'normalized' or 'raw', got {reinforce_advantage!r}")
         self.reinforce_advantage = reinforce_advantage
@@ -636,8 +650,11 @@ class ActorCritic(nn.Module):
         for name, alpha in self.reward_weights.items():
             critic = self.critics[name]
             fast: TwoHotSymlog | None = None
+            slow = self.return_critic == "slow"
             if dynamics and self.value_gradient != "none":
-                values = critic.value(feats, detach_params=True)  # (H+1, *B), differentiable w.r.t. feats
+                values = critic.value(feats, detach_params=True, slow=slow)  # (H+1, *B), differentiable w.r.t. feats
+            elif slow:
+                values = critic.value(feats_sg, slow=True).detach()  # (H+1, *B)
             else:
                 # one forward pass of the fast critic serves the returns (detached) and its own loss (s_0..s_{H-1})
                 dist_all = critic(feats_sg)  # (H+1, *B)

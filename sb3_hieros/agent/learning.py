@@ -74,6 +74,7 @@ def level_actor_critic(
         reinforce_advantage=config.reference.reinforce_advantage,
         return_normalization=ac.return_normalization,
         value_gradient=ac.value_gradient,
+        return_critic=ac.return_critic,
         replay_value_scale=ac.replay_value_loss,
     )
 
