@@ -123,6 +123,12 @@ CHANGE_SUITES = {
         '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 2}, '
         '"policy_kwargs": {"bf16": false}}',
     ],
+    "preset_return_critic_slow": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs",
+        '{"config_overrides": {"world_model_updates": 2, "actor_critic": {"return_critic": "slow"}}, '
+        '"policy_kwargs": {"bf16": false}}',
+    ],
     "rssm_world_model_updates_4_imag_horizon_32": [
         "--tasks", "cartpole-balance-proprio",
         "--hieros-kwargs",
