@@ -130,7 +130,7 @@ CHANGE_SUITES = {
         '"policy_kwargs": {"bf16": false}}',
     ],
     "rssm_world_model_updates_4_imag_horizon_32": [
-        "--tasks", "cartpole-balance-proprio",
+        "--tasks", "CartPole-v1", "Pendulum-v1", "cartpole-balance-proprio",
         "--hieros-kwargs",
         '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 4, "imag_horizon": 32}, '
         '"policy_kwargs": {"bf16": false}}',
