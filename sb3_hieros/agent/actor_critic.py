@@ -271,7 +271,7 @@ class Critic(nn.Module):
         :param feat: (*B, feat_dim)
         :return: (*B)
         """
-        return TwoHotSymlog(self.slow_net(feat), self.bins, self.bins_antisymmetric).mean
+        return self.value(feat, slow=True)
 
     @th.no_grad()
     def update_slow(self, fraction: float | None = None) -> None:
@@ -642,6 +642,7 @@ class ActorCritic(nn.Module):
         w = weights[:-1]  # (H, *B): one weight per action / return
         feats_sg = feats.detach()
         dynamics = self.gradient == "dynamics"
+        slow = self.return_critic == "slow"
         metrics: dict[str, th.Tensor] = {}
         advantage = th.zeros_like(w)
         raw_advantage = th.zeros_like(w)  # sum_k alpha_k (R^k - v^k), unnormalised
@@ -650,11 +651,10 @@ class ActorCritic(nn.Module):
         for name, alpha in self.reward_weights.items():
             critic = self.critics[name]
             fast: TwoHotSymlog | None = None
-            slow = self.return_critic == "slow"
             if dynamics and self.value_gradient != "none":
                 values = critic.value(feats, detach_params=True, slow=slow)  # (H+1, *B), differentiable w.r.t. feats
             elif slow:
-                values = critic.value(feats_sg, slow=True).detach()  # (H+1, *B)
+                values = critic.slow_value(feats_sg)  # (H+1, *B)
             else:
                 # one forward pass of the fast critic serves the returns (detached) and its own loss (s_0..s_{H-1})
                 dist_all = critic(feats_sg)  # (H+1, *B)
