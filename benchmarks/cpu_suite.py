@@ -32,9 +32,12 @@ script ends by printing the table.
 already have a line in ``runs.jsonl`` and takes its record from there, so a suite of several hours can be run task by
 task, or continued after an interruption, into one table. Each record names the git commit it ran at
 (``"commit"``); a resumed suite mixes commits only if the code changed in between, and the table does not hide that:
-check the commits in ``runs.jsonl``. ``--report`` trains nothing: it remakes ``table.md`` and the PNG from the
-records in ``runs.jsonl`` of the runs asked for, whatever their evaluation settings (so a pixel task evaluated on
-fewer episodes, each 500 rendered steps, joins the table; its "Final eval" cell says how many).
+check the commits in ``runs.jsonl``. A HIEROS run can also be continued from within: with ``--checkpoint-freq N`` it
+saves its model, replay and evaluations so far into ``<out>/checkpoints/`` every N agent steps, and ``--resume`` goes
+on from there (the folder is removed once the run is recorded; without ``--resume`` every run starts afresh), so a run
+of several hours (pixels) can be spread over sittings. ``--report`` trains nothing: it remakes ``table.md`` and the
+PNG from the records in ``runs.jsonl`` of the runs asked for, whatever their evaluation settings (so a pixel task
+evaluated on fewer episodes, each 500 rendered steps, joins the table; its "Final eval" cell says how many).
 
 Example (long: about 20 minutes per HIEROS run of 10k steps on one core; run it task by task, then make the table)::
 
@@ -49,12 +52,15 @@ Example (long: about 20 minutes per HIEROS run of 10k steps on one core; run it 
 from __future__ import annotations
 
 import argparse
+import functools
+import hashlib
 import json
 import os
 import pathlib
+import shutil
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, astuple, dataclass, field, fields
 from typing import Any
 
@@ -66,6 +72,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 __all__ = [
     "ALGOS",
+    "CHECKPOINT_DIR",
     "LABELS",
     "TASKS",
     "SuiteRun",
@@ -73,6 +80,7 @@ __all__ = [
     "append_record",
     "finished_runs",
     "recorded_runs",
+    "run_checkpoint_dir",
     "run_key",
     "run_suite_run",
     "suite_runs",
@@ -111,6 +119,8 @@ ALGOS = ("hieros", "dreamerv3", "ppo", "dqn", "sac")
 #: Column titles of the table.
 LABELS = {"hieros": "HIEROS small", "dreamerv3": "DreamerV3 XS (sheeprl)", "ppo": "PPO", "dqn": "DQN", "sac": "SAC"}
 EVAL_SEED_OFFSET = 10_000
+#: Sub-folder of ``--out`` with the checkpoints of unfinished HIEROS runs (``--checkpoint-freq``).
+CHECKPOINT_DIR = "checkpoints"
 
 
 @dataclass(frozen=True)
@@ -198,19 +208,32 @@ def _vec_env(spec: TaskSpec, n_envs: int, seed: int) -> Any:
     return venv
 
 
-def run_suite_run(run: SuiteRun) -> dict[str, Any]:
+def run_suite_run(
+    run: SuiteRun, checkpoint_dir: pathlib.Path | None = None, checkpoint_freq: int = 0
+) -> dict[str, Any]:
     """Train and evaluate one run.
 
+    A HIEROS run with ``checkpoint_dir`` and ``checkpoint_freq`` saves its model, replay and evaluations so far into
+    ``checkpoint_dir`` every ``checkpoint_freq`` agent steps (the files of :class:`benchmarks.train.RunCheckpoint`),
+    and goes on from the checkpoint it finds there (``docs/resume.md``: the same updates per level as a run that never
+    stopped; the random streams are seeded with ``seed + step``, and the evaluation env starts its episodes afresh).
+    The folder is removed when the run has finished. Other algorithms ignore both.
+
     :param run: what to run
+    :param checkpoint_dir: the run's checkpoint folder (:func:`run_checkpoint_dir`); None: no checkpoints
+    :param checkpoint_freq: agent steps between two checkpoints (0: none)
     :return: ``{**run fields, "eval_steps": [...], "eval_returns": [...], "trained_steps", "final_mean", "final_std",
-        "wall_s"}``
+        "wall_s"}``, and ``"resumed_at"`` (the steps it went on from) for a run continued from a checkpoint
+    :raises ValueError: a checkpoint in ``checkpoint_dir`` that belongs to a run with other settings
     """
     import torch as th
     from stable_baselines3 import DQN, PPO, SAC
-    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.callbacks import BaseCallback, CallbackList
     from stable_baselines3.common.evaluation import evaluate_policy
 
+    from benchmarks._checkpoint import checkpoint_paths
     from benchmarks.suites import SUITE_POLICIES
+    from benchmarks.train import RunCheckpoint
     from sb3_hieros import HIEROS
 
     if run.task not in TASKS:
@@ -218,6 +241,8 @@ def run_suite_run(run: SuiteRun) -> dict[str, Any]:
     spec = TASKS[run.task]
     if run.algo not in spec.algos:
         raise ValueError(f"algo {run.algo!r} is not run on {run.task!r}; expected one of {spec.algos}")
+    if isinstance(checkpoint_freq, bool) or not isinstance(checkpoint_freq, int) or checkpoint_freq < 0:
+        raise ValueError(f"checkpoint_freq must be an int >= 0 (0: no checkpoints), got {checkpoint_freq!r}")
     if run.algo == "dreamerv3":
         from benchmarks.peers import run_dreamerv3
 
@@ -233,10 +258,29 @@ def run_suite_run(run: SuiteRun) -> dict[str, Any]:
     env = _vec_env(spec, n_envs, run.seed)
     eval_env = _vec_env(spec, 1, run.seed + EVAL_SEED_OFFSET)
     algo_class: Any = {"hieros": HIEROS, "ppo": PPO, "dqn": DQN, "sac": SAC}[run.algo]
+    checkpointing = run.algo == "hieros" and checkpoint_dir is not None and checkpoint_freq > 0
+    saved = None
+    if checkpointing and (checkpoint_dir / "progress.json").is_file():
+        saved = json.loads((checkpoint_dir / "progress.json").read_text())
+        if saved["run"] != json.loads(json.dumps(asdict(run))):
+            raise ValueError(
+                f"{checkpoint_dir / 'progress.json'} belongs to the run {saved['run']}, not to {asdict(run)}; "
+                "remove that folder to start afresh"
+            )
     start = time.perf_counter()
-    model = algo_class(policy, env, seed=run.seed, **kwargs)
-    milestones = [run.steps * i // run.n_evals for i in range(1, run.n_evals)]
     evaluations: list[tuple[int, float]] = []
+    if saved is None:
+        model = algo_class(policy, env, seed=run.seed, **kwargs)
+        earlier_s, resumed_at = 0.0, []
+    else:
+        step = int(saved["step"])
+        model_path, replay_path = checkpoint_paths(checkpoint_dir, step)
+        model = HIEROS.load(model_path, env=env)
+        model.load_replay_buffer(replay_path)
+        model.set_random_seed(run.seed + step)
+        evaluations = [(int(t), float(r)) for t, r in saved["evaluations"]]
+        earlier_s, resumed_at = float(saved["wall_s"]), [*saved["resumed_at"], step]
+    milestones = [m for m in (run.steps * i // run.n_evals for i in range(1, run.n_evals)) if m > model.num_timesteps]
 
     class EvaluateAtMilestones(BaseCallback):
         def _on_step(self) -> bool:
@@ -246,14 +290,29 @@ def run_suite_run(run: SuiteRun) -> dict[str, Any]:
                 evaluations.append((int(self.num_timesteps), float(mean)))
             return True
 
-    model.learn(run.steps, callback=EvaluateAtMilestones())
+    callbacks: list[BaseCallback] = [EvaluateAtMilestones()]
+    if checkpointing:
+
+        def progress() -> dict[str, Any]:
+            return {
+                "run": asdict(run),
+                "wall_s": earlier_s + time.perf_counter() - start,
+                "resumed_at": resumed_at,
+                "evaluations": evaluations,
+            }
+
+        callbacks.append(RunCheckpoint(checkpoint_dir, checkpoint_freq, progress))
+    model.learn(run.steps - model.num_timesteps, callback=CallbackList(callbacks), reset_num_timesteps=saved is None)
     returns, _ = evaluate_policy(
         model, eval_env, n_eval_episodes=run.eval_episodes, deterministic=True, return_episode_rewards=True
     )
     evaluations.append((int(model.num_timesteps), float(np.mean(returns))))
-    wall = time.perf_counter() - start
+    wall = earlier_s + time.perf_counter() - start
     env.close()
     eval_env.close()
+    if checkpointing:
+        shutil.rmtree(checkpoint_dir, ignore_errors=True)
+    resumed = {"resumed_at": resumed_at} if resumed_at else {}
     return {
         **asdict(run),
         "eval_steps": [t for t, _ in evaluations],
@@ -263,7 +322,13 @@ def run_suite_run(run: SuiteRun) -> dict[str, Any]:
         "final_std": float(np.std(returns)),
         "wall_s": round(wall, 1),
         "commit": _git_commit(),
+        **resumed,
     }
+
+
+def _run_with_checkpoints(run: SuiteRun, out: pathlib.Path, checkpoint_freq: int) -> dict[str, Any]:
+    """:func:`run_suite_run` with the run's checkpoint folder under ``out`` (a top-level function, for the pool)."""
+    return run_suite_run(run, run_checkpoint_dir(out, run), checkpoint_freq)
 
 
 def _git_commit() -> str | None:
@@ -345,6 +410,18 @@ def run_key(run: SuiteRun) -> tuple[Any, ...]:
     :return: its key
     """
     return tuple(json.dumps(v, sort_keys=True) if isinstance(v, dict) else v for v in astuple(run))
+
+
+def run_checkpoint_dir(out: str | pathlib.Path, run: SuiteRun) -> pathlib.Path:
+    """The checkpoint folder of ``run`` under ``out`` (``--checkpoint-freq``), named by its task, algorithm and seed
+    and a digest of all its settings, so that runs with other settings never share one.
+
+    :param out: the suite's ``--out``
+    :param run: a run
+    :return: ``<out>/checkpoints/<task>_<algo>_seed<seed>_<digest>``
+    """
+    digest = hashlib.sha256(repr(run_key(run)).encode()).hexdigest()[:12]
+    return pathlib.Path(out) / CHECKPOINT_DIR / f"{run.task}_{run.algo}_seed{run.seed}_{digest}"
 
 
 def recorded_runs(path: str | pathlib.Path, runs: Sequence[SuiteRun]) -> list[dict[str, Any]]:
@@ -518,12 +595,21 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         "--resume", action="store_true", help="reuse the runs already recorded in <out>/runs.jsonl (same settings)"
     )
     parser.add_argument(
+        "--checkpoint-freq",
+        type=int,
+        default=0,
+        help="HIEROS runs: save a checkpoint into <out>/checkpoints/ every N agent steps; with --resume an unfinished "
+        "run goes on from its checkpoint (0: none)",
+    )
+    parser.add_argument(
         "--report",
         action="store_true",
         help="train nothing: remake table.md and the PNG from <out>/runs.jsonl for --tasks/--algos/--seeds/--steps, "
         "whatever their evaluation settings",
     )
     args = parser.parse_args(argv)
+    if args.checkpoint_freq < 0:
+        parser.error(f"--checkpoint-freq must be >= 0 (0: no checkpoints), got {args.checkpoint_freq}")
     runs = suite_runs(
         args.tasks,
         args.algos,
@@ -564,7 +650,13 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
             append_record(log, record)  # one line per run, on disk before the next run starts
             report(record)
 
-        fresh = iter(execute(run_suite_run, todo, workers=args.workers, report=record_run))
+        if not args.resume:  # every run starts afresh: an earlier run's checkpoint is not gone on from
+            for run in todo:
+                shutil.rmtree(run_checkpoint_dir(out, run), ignore_errors=True)
+        runner: Callable[[SuiteRun], dict[str, Any]] = run_suite_run
+        if args.checkpoint_freq:
+            runner = functools.partial(_run_with_checkpoints, out=out, checkpoint_freq=args.checkpoint_freq)
+        fresh = iter(execute(runner, todo, workers=args.workers, report=record_run))
         records = [done.get(run_key(run)) or next(fresh) for run in runs]
         (out / "results.json").write_text(json.dumps(records, indent=1))
     markdown = table(records)

@@ -15,11 +15,14 @@ from benchmarks.cpu_suite import (
     finished_runs,
     main,
     recorded_runs,
+    run_checkpoint_dir,
     run_key,
+    run_suite_run,
     suite_runs,
     zoo_hyperparams,
 )
 from benchmarks.sample_efficiency import ZOO_DQN, ZOO_PPO
+from benchmarks.train import RunCheckpoint
 
 
 def test_zoo_hyperparams_read_from_rl_zoo3():
@@ -128,3 +131,54 @@ def test_an_append_cut_short_is_left_out_and_cut(tmp_path):
         assert set(finished_runs(log)) == {run_key(run)}
     drop_unfinished_line(log)
     assert log.read_text() == whole
+
+
+def test_a_hieros_run_goes_on_from_its_checkpoint(tmp_path, monkeypatch):
+    hieros_kwargs = {"learning_starts": 20, "buffer_size": 1000, "config_overrides": {"n_levels": 1}}
+    args = [
+        "--tasks", "CartPole-v1", "--algos", "hieros", "--seeds", "1", "--steps", "90", "--eval-episodes", "1",
+        "--n-evals", "3", "--checkpoint-freq", "25", "--hieros-kwargs", json.dumps(hieros_kwargs),
+    ]  # fmt: skip
+    run = suite_runs(["CartPole-v1"], ["hieros"], [0], 90, 1, 3, hieros_kwargs)[0]
+    folder = run_checkpoint_dir(tmp_path / "resumed", run)
+    save = RunCheckpoint._on_rollout_start
+
+    def save_then_stop(self):
+        save(self)
+        if self.last_saved == 50:
+            raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(RunCheckpoint, "_on_rollout_start", save_then_stop)
+        with pytest.raises(KeyboardInterrupt):
+            main([*args, "--out", str(tmp_path / "resumed")])
+    assert sorted(p.name for p in folder.iterdir()) == ["model_50.zip", "progress.json", "replay_50.zip"]
+    progress = json.loads((folder / "progress.json").read_text())
+    assert progress["step"] == 50 and [t for t, _ in progress["evaluations"]] == [30] and progress["wall_s"] > 0
+
+    (record,) = main([*args, "--out", str(tmp_path / "resumed"), "--resume"])
+    assert record["resumed_at"] == [50] and record["trained_steps"] == 90 and record["wall_s"] > progress["wall_s"]
+    assert record["eval_steps"] == [30, 60, 90] and record["eval_returns"][0] == progress["evaluations"][0][1]
+    assert not folder.exists()  # removed once the run is recorded
+    (plain,) = main([*args, "--out", str(tmp_path / "plain")])
+    assert plain["eval_steps"] == record["eval_steps"] and "resumed_at" not in plain
+
+    # without --resume a run starts afresh, whatever checkpoint its folder holds
+    with monkeypatch.context() as patch:
+        patch.setattr(RunCheckpoint, "_on_rollout_start", save_then_stop)
+        with pytest.raises(KeyboardInterrupt):
+            main([*args, "--out", str(tmp_path / "again")])
+    (fresh,) = main([*args, "--out", str(tmp_path / "again")])
+    assert "resumed_at" not in fresh and not run_checkpoint_dir(tmp_path / "again", run).exists()
+
+
+def test_a_checkpoint_of_other_settings_is_refused(tmp_path):
+    run = suite_runs(["CartPole-v1"], ["hieros"], [0], 90, 1, 3)[0]
+    folder = tmp_path / "checkpoint"
+    folder.mkdir()
+    other = {**dataclasses.asdict(run), "steps": 120}
+    (folder / "progress.json").write_text(json.dumps({"step": 50, "run": other}))
+    with pytest.raises(ValueError, match=r"progress.json belongs to the run .*'steps': 120.*remove that folder"):
+        run_suite_run(run, folder, 25)
+    with pytest.raises(ValueError, match="checkpoint_freq must be an int >= 0"):
+        run_suite_run(run, folder, -1)
