@@ -129,6 +129,12 @@ CHANGE_SUITES = {
         '{"config_overrides": {"world_model_updates": 2, "actor_critic": {"return_critic": "slow"}}, '
         '"policy_kwargs": {"bf16": false}}',
     ],
+    "rssm_world_model_updates_4": [
+        "--tasks", "CartPole-v1", "Pendulum-v1", "cartpole-balance-proprio",
+        "--hieros-kwargs",
+        '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 4}, '
+        '"policy_kwargs": {"bf16": false}}',
+    ],
     "rssm_world_model_updates_4_imag_horizon_32": [
         "--tasks", "CartPole-v1", "Pendulum-v1", "cartpole-balance-proprio",
         "--hieros-kwargs",
