@@ -35,9 +35,10 @@ task, or continued after an interruption, into one table. Each record names the 
 check the commits in ``runs.jsonl``. A HIEROS run can also be continued from within: with ``--checkpoint-freq N`` it
 saves its model, replay and evaluations so far into ``<out>/checkpoints/`` every N agent steps, and ``--resume`` goes
 on from there (the folder is removed once the run is recorded; without ``--resume`` every run starts afresh), so a run
-of several hours (pixels) can be spread over sittings. ``--report`` trains nothing: it remakes ``table.md`` and the
-PNG from the records in ``runs.jsonl`` of the runs asked for, whatever their evaluation settings (so a pixel task
-evaluated on fewer episodes, each 500 rendered steps, joins the table; its "Final eval" cell says how many).
+of several hours (pixels) can be spread over sittings; ``--first-seed`` splits a task's seeds over processes.
+``--report`` trains nothing: it remakes ``table.md`` and the PNG from the records in ``runs.jsonl`` of the runs asked
+for, whatever their evaluation settings (so a pixel task evaluated on fewer episodes, each 500 rendered steps, joins
+the table; its "Final eval" cell says how many).
 
 Example (long: about 20 minutes per HIEROS run of 10k steps on one core; run it task by task, then make the table)::
 
@@ -582,7 +583,13 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
     parser.add_argument("--algos", nargs="+", default=list(ALGOS), choices=list(ALGOS))
-    parser.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1")
+    parser.add_argument("--seeds", type=int, default=3, help="how many seeds: S..S+N-1 with --first-seed S (default 0)")
+    parser.add_argument(
+        "--first-seed",
+        type=int,
+        default=0,
+        help="the first seed S (to split the seeds of a suite over processes)",
+    )
     parser.add_argument("--steps", type=int, default=20_000, help="agent steps per run, every algorithm")
     parser.add_argument("--eval-episodes", type=int, default=10)
     parser.add_argument(
@@ -608,12 +615,14 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         "whatever their evaluation settings",
     )
     args = parser.parse_args(argv)
+    if args.first_seed < 0:
+        parser.error(f"--first-seed must be >= 0, got {args.first_seed}")
     if args.checkpoint_freq < 0:
         parser.error(f"--checkpoint-freq must be >= 0 (0: no checkpoints), got {args.checkpoint_freq}")
     runs = suite_runs(
         args.tasks,
         args.algos,
-        range(args.seeds),
+        range(args.first_seed, args.first_seed + args.seeds),
         args.steps,
         args.eval_episodes,
         args.n_evals,

@@ -182,3 +182,11 @@ def test_a_checkpoint_of_other_settings_is_refused(tmp_path):
         run_suite_run(run, folder, 25)
     with pytest.raises(ValueError, match="checkpoint_freq must be an int >= 0"):
         run_suite_run(run, folder, -1)
+
+
+def test_first_seed_selects_the_seeds(tmp_path):
+    args = ["--tasks", "CartPole-v1", "--algos", "dqn", "--steps", "32", "--eval-episodes", "1", "--n-evals", "1"]
+    records = main([*args, "--first-seed", "2", "--seeds", "2", "--out", str(tmp_path)])
+    assert [r["seed"] for r in records] == [2, 3]
+    with pytest.raises(SystemExit):
+        main([*args, "--first-seed", "-1", "--out", str(tmp_path)])
