@@ -35,7 +35,7 @@ task, or continued after an interruption, into one table. Each record names the 
 check the commits in ``runs.jsonl``. A HIEROS run can also be continued from within: with ``--checkpoint-freq N`` it
 saves its model, replay and evaluations so far into ``<out>/checkpoints/`` every N agent steps, and ``--resume`` goes
 on from there (the folder is removed once the run is recorded; without ``--resume`` every run starts afresh), so a run
-of several hours (pixels) can be spread over sittings; ``--first-seed`` splits a task's seeds over processes.
+of several hours (pixels) can be spread over several sessions; ``--first-seed`` splits a task's seeds over processes.
 ``--report`` trains nothing: it remakes ``table.md`` and the PNG from the records in ``runs.jsonl`` of the runs asked
 for, whatever their evaluation settings (so a pixel task evaluated on fewer episodes, each 500 rendered steps, joins
 the table; its "Final eval" cell says how many).
