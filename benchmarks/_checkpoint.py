@@ -8,10 +8,11 @@ nothing (``docs/resume.md``).
 from __future__ import annotations
 
 import pathlib
+from typing import Any
 
 from stable_baselines3.common.callbacks import BaseCallback
 
-__all__ = ["PeriodicCheckpoint", "checkpoint_paths", "checkpoint_steps"]
+__all__ = ["PeriodicCheckpoint", "check_same_options", "checkpoint_paths", "checkpoint_steps", "load_checkpoint"]
 
 
 def checkpoint_paths(directory: pathlib.Path, step: int) -> tuple[pathlib.Path, pathlib.Path]:
@@ -23,6 +24,40 @@ def checkpoint_steps(directory: pathlib.Path) -> list[int]:
     """Steps of the checkpoints whose model and replay files both exist, newest first."""
     steps = {int(p.stem.split("_")[1]) for p in directory.glob("model_*.zip")}
     return sorted((s for s in steps if checkpoint_paths(directory, s)[1].exists()), reverse=True)
+
+
+def load_checkpoint(directory: pathlib.Path, step: int, env: Any, **load_kwargs: Any) -> Any:
+    """The HIEROS model of the checkpoint at ``step`` on ``env``, with its replay (every level) loaded.
+
+    :param directory: the checkpoint folder
+    :param step: the checkpoint's step (:func:`checkpoint_steps`)
+    :param env: the env the model goes on with
+    :param load_kwargs: passed to ``HIEROS.load`` (e.g. ``device``, ``safe``)
+    :return: the model
+    """
+    from sb3_hieros import HIEROS
+
+    model_path, replay_path = checkpoint_paths(directory, step)
+    model = HIEROS.load(model_path, env=env, **load_kwargs)
+    model.load_replay_buffer(replay_path)
+    return model
+
+
+def check_same_options(saved: dict[str, Any], options: dict[str, Any], path: pathlib.Path) -> None:
+    """Refuse to resume from ``path`` (a checkpoint's progress or a finished run's record) when one of the run's
+    options that it holds differs from ``options``, naming each.
+
+    :param saved: the options (or the record) read from ``path``
+    :param options: the options of this call
+    :param path: the file they were read from, for the message
+    """
+    changed = sorted(k for k in options if k in saved and saved[k] != options[k])
+    if changed:
+        raise ValueError(
+            f"{path} belongs to a run with other options: "
+            + ", ".join(f"{k} {saved[k]!r} (now {options[k]!r})" for k in changed)
+            + "; resume with the same options, or remove the run's folder to start afresh"
+        )
 
 
 class PeriodicCheckpoint(BaseCallback):

@@ -232,7 +232,7 @@ def run_suite_run(
     from stable_baselines3.common.callbacks import BaseCallback, CallbackList
     from stable_baselines3.common.evaluation import evaluate_policy
 
-    from benchmarks._checkpoint import checkpoint_paths
+    from benchmarks._checkpoint import check_same_options, load_checkpoint
     from benchmarks.suites import SUITE_POLICIES
     from benchmarks.train import RunCheckpoint
     from sb3_hieros import HIEROS
@@ -263,11 +263,7 @@ def run_suite_run(
     saved = None
     if checkpointing and (checkpoint_dir / "progress.json").is_file():
         saved = json.loads((checkpoint_dir / "progress.json").read_text())
-        if saved["run"] != json.loads(json.dumps(asdict(run))):
-            raise ValueError(
-                f"{checkpoint_dir / 'progress.json'} belongs to the run {saved['run']}, not to {asdict(run)}; "
-                "remove that folder to start afresh"
-            )
+        check_same_options(saved["run"], json.loads(json.dumps(asdict(run))), checkpoint_dir / "progress.json")
     start = time.perf_counter()
     evaluations: list[tuple[int, float]] = []
     if saved is None:
@@ -275,9 +271,7 @@ def run_suite_run(
         earlier_s, resumed_at = 0.0, []
     else:
         step = int(saved["step"])
-        model_path, replay_path = checkpoint_paths(checkpoint_dir, step)
-        model = HIEROS.load(model_path, env=env)
-        model.load_replay_buffer(replay_path)
+        model = load_checkpoint(checkpoint_dir, step, env)
         model.set_random_seed(run.seed + step)
         evaluations = [(int(t), float(r)) for t, r in saved["evaluations"]]
         earlier_s, resumed_at = float(saved["wall_s"]), [*saved["resumed_at"], step]

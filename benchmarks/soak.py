@@ -52,7 +52,7 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
-from benchmarks._checkpoint import PeriodicCheckpoint, checkpoint_paths, checkpoint_steps
+from benchmarks._checkpoint import PeriodicCheckpoint, checkpoint_paths, checkpoint_steps, load_checkpoint
 from benchmarks._timing import environment_header
 from sb3_hieros import HIEROS
 from sb3_hieros.save_util import verify_archive
@@ -242,9 +242,7 @@ def fault_worker(args: argparse.Namespace) -> None:
     env = make_vec_env("CartPole-v1", n_envs=1, seed=args.seed)
     steps = checkpoint_steps(directory)
     if steps:
-        model_path, replay_path = checkpoint_paths(directory, steps[0])
-        model = HIEROS.load(model_path, env=env, safe=True)
-        model.load_replay_buffer(replay_path)
+        model = load_checkpoint(directory, steps[0], env, safe=True)
         _say("RESUMED", steps[0], int(all(b.can_sample() for b in model.level_buffers())))
     else:
         model = HIEROS(

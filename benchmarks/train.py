@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 
-from benchmarks._checkpoint import PeriodicCheckpoint, checkpoint_paths
+from benchmarks._checkpoint import PeriodicCheckpoint, check_same_options, checkpoint_paths, load_checkpoint
 from benchmarks._cli import json_object
 from benchmarks.suites import SUITE_POLICIES, SUITES, make_env
 from sb3_hieros.save_util import atomic_path
@@ -121,23 +121,6 @@ class RunCheckpoint(PeriodicCheckpoint):
         for old in (*self.directory.glob("model_*.zip"), *self.directory.glob("replay_*.zip")):
             if old not in kept:
                 old.unlink(missing_ok=True)
-
-
-def _check_same_options(saved: dict[str, Any], options: dict[str, Any], path: pathlib.Path) -> None:
-    """Refuse to resume from ``path`` (a checkpoint's progress or a finished run's record) when one of the run's
-    options that it holds differs from ``options``, naming each.
-
-    :param saved: the options (or the record) read from ``path``
-    :param options: the options of this call
-    :param path: the file they were read from, for the message
-    """
-    changed = sorted(k for k in options if k in saved and saved[k] != options[k])
-    if changed:
-        raise ValueError(
-            f"{path} belongs to a run with other options: "
-            + ", ".join(f"{k} {saved[k]!r} (now {options[k]!r})" for k in changed)
-            + "; resume with the same options, or remove the run's folder to start afresh"
-        )
 
 
 def _restore_evaluations(callback: EvalCallback, saved: dict[str, Any], step: int) -> None:
@@ -233,12 +216,12 @@ def train(
     checkpoint_dir = folder / CHECKPOINT_DIR
     if resume and (folder / "result.json").is_file():
         record = json.loads((folder / "result.json").read_text())
-        _check_same_options(record, options, folder / "result.json")
+        check_same_options(record, options, folder / "result.json")
         return record
     saved = None
     if resume and (checkpoint_dir / "progress.json").is_file():
         saved = json.loads((checkpoint_dir / "progress.json").read_text())
-        _check_same_options(saved["options"], options, checkpoint_dir / "progress.json")
+        check_same_options(saved["options"], options, checkpoint_dir / "progress.json")
     folder.mkdir(parents=True, exist_ok=True)
     env = _vec_env(suite, task, seed, folder / "train", env_kwargs, append=saved is not None)
     eval_env = _vec_env(suite, task, seed + EVAL_SEED_OFFSET, folder / "eval", env_kwargs, append=saved is not None)
@@ -258,9 +241,7 @@ def train(
         )
     else:
         step = int(saved["step"])
-        model_path, replay_path = checkpoint_paths(checkpoint_dir, step)
-        model = HIEROS.load(model_path, env=env, device=device, verbose=verbose)
-        model.load_replay_buffer(replay_path)
+        model = load_checkpoint(checkpoint_dir, step, env, device=device, verbose=verbose)
         model.set_random_seed(seed + step)
     callbacks: list[BaseCallback] = []
     evaluation = None

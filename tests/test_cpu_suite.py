@@ -178,7 +178,10 @@ def test_a_checkpoint_of_other_settings_is_refused(tmp_path):
     folder.mkdir()
     other = {**dataclasses.asdict(run), "steps": 120}
     (folder / "progress.json").write_text(json.dumps({"step": 50, "run": other}))
-    with pytest.raises(ValueError, match=r"progress.json belongs to the run .*'steps': 120.*remove that folder"):
+    with pytest.raises(
+        ValueError,
+        match=r"progress.json belongs to a run with other options: steps 120 \(now 90\).*remove the run's folder",
+    ):
         run_suite_run(run, folder, 25)
     with pytest.raises(ValueError, match="checkpoint_freq must be an int >= 0"):
         run_suite_run(run, folder, -1)
