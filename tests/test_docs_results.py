@@ -130,7 +130,7 @@ CHANGE_SUITES = {
         '"policy_kwargs": {"bf16": false}}',
     ],
     "rssm_world_model_updates_4": [
-        "--tasks", "CartPole-v1", "Pendulum-v1", "cartpole-balance-proprio",
+        "--tasks", "CartPole-v1", "Pendulum-v1", "cartpole-balance-proprio", "cartpole-balance-pixels",
         "--hieros-kwargs",
         '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 4}, '
         '"policy_kwargs": {"bf16": false}}',
