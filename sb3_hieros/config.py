@@ -19,6 +19,7 @@ from typing import Any
 WORLD_MODEL_KINDS = ("s5", "rssm")
 DETER_SOURCES = ("state", "output", "gru")
 ACTION_INPUTS = ("joint", "separate")
+POSTERIOR_INPUTS = ("auto", "observation", "state")
 IMAG_GRADIENTS = ("auto", "reinforce", "dynamics")
 HIGHER_LEVEL_INPUTS = ("all", "last")
 EXTRINSIC_REWARD_LEVELS = ("all", "top")
@@ -94,7 +95,10 @@ class WorldModelConfig:
         then LayerNorm and SiLU (thesis, first DreamerV3); ``"separate"``: z and a each through their own Linear,
         LayerNorm and SiLU, concatenated (half the width each), so the action keeps a normalised share of the input
         however large z is (later DreamerV3 releases; not in the thesis)
-    :param stoch_groups: number of categorical latents in z_t
+    :param posterior: what the posterior ``q(z_t | .)`` reads: ``"observation"``: the embedding e_t alone (the
+        thesis' S5WM, whose training scans the whole chunk in parallel); ``"state"``: ``[h_t, e_t]`` (DreamerV3's RSSM),
+        so z_t holds what h_t did not predict; S5WM then runs its stack step by step over the chunk in training, as
+        the RSSM runs its GRU; ``"auto"``: ``"observation"`` for S5WM, ``"state"`` for RSSM
     :param stoch_classes: classes per categorical latent
     :param hidden: width of the prior/posterior/input layers
     :param cnn_depth: channels of the first conv layer (doubled per stage)
@@ -122,6 +126,7 @@ class WorldModelConfig:
     deter_dim: int = 256
     deter_from: str = "state"
     action_input: str = "joint"
+    posterior: str = "auto"
     stoch_groups: int = 32
     stoch_classes: int = 32
     hidden: int = 256
@@ -145,6 +150,7 @@ class WorldModelConfig:
         _check_choice(self, "kind", WORLD_MODEL_KINDS)
         _check_choice(self, "deter_from", DETER_SOURCES)
         _check_choice(self, "action_input", ACTION_INPUTS)
+        _check_choice(self, "posterior", POSTERIOR_INPUTS)
         _check_positive(
             self,
             "s5_layers",
@@ -175,6 +181,13 @@ class WorldModelConfig:
                 "WorldModelConfig.weight_decay, warmup and free_bits must be >= 0, got "
                 f"{self.weight_decay!r}, {self.warmup!r}, {self.free_bits!r}"
             )
+
+    @property
+    def posterior_reads_state(self) -> bool:
+        """Whether the posterior reads h_t besides the observation (``posterior`` with ``"auto"`` resolved)."""
+        if self.posterior == "auto":
+            return self.kind == "rssm"
+        return self.posterior == "state"
 
 
 @dataclass

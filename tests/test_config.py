@@ -50,6 +50,7 @@ def test_replace_nested_and_validates():
         ({"kind": "lstm"}, "kind"),
         ({"deter_from": "both"}, "deter_from"),
         ({"action_input": "split"}, r"action_input must be one of \('joint', 'separate'\), got 'split'"),
+        ({"posterior": "both"}, r"posterior must be one of \('auto', 'observation', 'state'\), got 'both'"),
         ({"s5_state_dim": 100, "s5_hippo_blocks": 3}, "divisible"),
         ({"dropout": 1.5}, "dropout"),
         ({"lr": -1.0}, "lr"),

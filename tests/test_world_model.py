@@ -24,15 +24,26 @@ from sb3_hieros.agent.world_model import (
 from sb3_hieros.config import WorldModelConfig
 from sb3_hieros.spaces import check_observation_space
 
-# "s5-gru": S5WM with deter_from="gru" (h_t from a GRU cell on the stack output, part of the recurrent memory)
+# the sequence models under test: kind plus the options that change what they compute
+VARIANTS = {
+    "s5": ("s5", {}),
+    "rssm": ("rssm", {}),
+    # h_t from a GRU cell on the stack output, part of the recurrent memory
+    "s5-gru": ("s5", {"deter_from": "gru"}),
+    # posteriors that read h_t (S5WM then steps its stack in training) or the observation alone (RSSM)
+    "s5-gru-post-state": ("s5", {"deter_from": "gru", "posterior": "state"}),
+    "s5-post-state": ("s5", {"posterior": "state"}),
+    "rssm-post-observation": ("rssm", {"posterior": "observation"}),
+}
 KINDS = ("s5", "rssm", "s5-gru")
+#: for the tests of what observe computes (chunk against steps, context, resets, gradients, learning)
+ALL_KINDS = tuple(VARIANTS)
 TINY = TINY_WORLD_MODEL
 
 
 def tiny_config(kind: str, **changes) -> WorldModelConfig:
-    if kind == "s5-gru":
-        kind, changes = "s5", {"deter_from": "gru", **changes}
-    return WorldModelConfig(kind=kind, **{**TINY, **changes})
+    kind, options = VARIANTS[kind]
+    return WorldModelConfig(kind=kind, **{**TINY, **options, **changes})
 
 
 def vector_model(kind: str, obs_dim: int = 3, action_dim: int = 2, **changes):
@@ -58,15 +69,17 @@ def assert_states_close(a: LatentState, b: LatentState, atol: float = 1e-5) -> N
         assert th.allclose(x, y, atol=atol), f"{name}: max diff {(x - y).abs().max()}"
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", ALL_KINDS)
 def test_factory_selects_kind(kind):
     model = vector_model(kind)
-    assert isinstance(model, RSSMWorldModel if kind == "rssm" else S5WorldModel)
+    assert isinstance(model, RSSMWorldModel if kind.startswith("rssm") else S5WorldModel)
     assert model.kind == kind.split("-")[0]
+    reads_state = kind in ("rssm", "s5-gru-post-state", "s5-post-state")
+    assert model.config.posterior_reads_state == reads_state
     assert model.feat_dim == TINY["deter_dim"] + TINY["stoch_groups"] * TINY["stoch_classes"]
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", ALL_KINDS)
 def test_observe_matches_obs_step_with_resets(kind):
     check_observe_matches_obs_step(vector_model(kind))
 
@@ -88,7 +101,23 @@ def check_observe_matches_obs_step(model) -> None:
     assert th.equal(post.prior_logits, prior)
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", ALL_KINDS)
+def test_posterior_reads_the_state_where_configured(kind):
+    model = vector_model(kind)
+    obs, actions, is_first = random_chunk(3, 4)
+    last = (slice(None), -1)
+    start = model.observe(obs, actions, is_first, deterministic=True)[0].select(last)
+    other = model.observe(3.0 * th.randn_like(obs), -actions, is_first, deterministic=True)[0].select(last)
+    is_first[:] = False  # the state before row 0 is carried into it
+    post, _ = model.observe(obs, actions, is_first, state=start, deterministic=True)
+    post_other, _ = model.observe(obs, actions, is_first, state=other, deterministic=True)
+    # the same observations after other histories: h_t differs, and so does q(z_t | .) exactly where it reads h_t
+    assert not th.allclose(post.deter, post_other.deter)
+    same_posterior = th.allclose(post.logits, post_other.logits, atol=1e-6)
+    assert same_posterior != model.config.posterior_reads_state
+
+
+@pytest.mark.parametrize("kind", ALL_KINDS)
 def test_packed_context_continues_a_chunk(kind):
     model = vector_model(kind)
     obs, actions, is_first = random_chunk(3, 10, reset_at=((1, 6),))
@@ -111,7 +140,7 @@ def test_packed_context_continues_a_chunk(kind):
         model.unpack_context(th.zeros(3, model.context_dim + 1))
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", ALL_KINDS)
 def test_reset_equals_fresh_start(kind):
     model = vector_model(kind)
     obs, actions, is_first = random_chunk(2, 6, reset_at=((0, 3), (1, 3)))
@@ -208,7 +237,7 @@ def test_rollout_runs_without_dropout_in_training_mode():
     assert not th.allclose(again.deter, once_more.deter)
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", ALL_KINDS)
 def test_imagination_gradients_flow_through_recurrent_state(kind):
     model = vector_model(kind)
     obs, actions, is_first = random_chunk(2, 3)
@@ -223,21 +252,22 @@ def test_imagination_gradients_flow_through_recurrent_state(kind):
         return first_action if len(calls) == 1 else th.tanh(state.deter[:, :2])
 
     # the RSSM's recurrent memory is its deterministic state (seq and deter are one tensor)
-    start = start._replace(seq=seq0, deter=seq0) if kind == "rssm" else start._replace(seq=seq0)
+    start = start._replace(seq=seq0, deter=seq0) if kind.startswith("rssm") else start._replace(seq=seq0)
     deter0 = start.deter.clone().requires_grad_(True)
-    if kind == "s5-gru":  # its deterministic state is memory besides the S5 states
+    gru_deter = kind.startswith("s5-gru")
+    if gru_deter:  # its deterministic state is memory besides the S5 states
         start = start._replace(deter=deter0)
     states, _, _ = model.imagine(start, policy, 5, keep_seq=True)
     states.deter[-1].sum().backward()
     # memory of the sequence model is not detached between steps
     assert seq0.grad is not None and seq0.grad.abs().sum() > 0
-    if kind == "s5-gru":
+    if gru_deter:
         assert deter0.grad is not None and deter0.grad.abs().sum() > 0
     # dynamics backpropagation reaches the first action through five steps
     assert first_action.grad is not None and first_action.grad.abs().sum() > 0
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", ALL_KINDS)
 def test_gradients_reach_all_parts(kind):
     model = vector_model(kind)
     obs, actions, is_first = random_chunk(2, 6, reset_at=((0, 3),))
@@ -262,15 +292,23 @@ def test_gradients_reach_all_parts(kind):
         "prior_net": model.prior_net,
         "inp": model.inp,
     }
-    if kind == "s5":
-        parts.update(sequence_model=model.sequence_model, post_net=model.post_net, deter_out=model.deter_out)
-    if kind == "s5-gru":
-        parts.update(sequence_model=model.sequence_model, post_net=model.post_net, deter_cell=model.deter_cell)
-    if kind != "rssm":
+    if model.config.posterior_reads_state:
+        parts.update(post_deter=model.post_deter, post_embed=model.post_embed, post_out=model.post_out)
+    elif model.kind == "s5":
+        parts.update(post_net=model.post_net)
+    else:
+        parts.update(post_embed=model.post_embed, post_out=model.post_out)
+        assert model.post_deter is None
+    if model.kind == "s5":
+        parts.update(sequence_model=model.sequence_model)
+        if kind.startswith("s5-gru"):
+            parts.update(deter_cell=model.deter_cell)
+        else:
+            parts.update(deter_out=model.deter_out)
         ssm = list(model.sequence_model.ssm_parameters())
         assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in ssm)
     else:
-        parts.update(gru=model.gru, post_out=model.post_out, post_embed=model.post_embed)
+        parts.update(gru=model.gru)
     for name, module in parts.items():
         grads = [p.grad for p in module.parameters() if p.grad is not None]
         assert grads and any(g.abs().sum() > 0 for g in grads), name
@@ -299,7 +337,7 @@ def cycling_samples(batch: int, length: int, generator: th.Generator):
     )
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", ALL_KINDS)
 def test_learns_toy_world_and_predicts_open_loop(kind):
     th.manual_seed(1)
     model = make_world_model(
@@ -405,7 +443,7 @@ def test_heads_and_helpers(kind):
         post.masked(keep)
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", ALL_KINDS)
 def test_optimizer_groups(kind):
     model = vector_model(kind, weight_decay=0.1)
     optimizer = world_model_optimizer(model)
@@ -413,7 +451,7 @@ def test_optimizer_groups(kind):
     assert decay["weight_decay"] == 0.1 and no_decay["weight_decay"] == 0.0
     assert len(decay["params"]) + len(no_decay["params"]) == len(list(model.parameters()))
     no_decay_ids = {id(p) for p in no_decay["params"]}
-    if kind != "rssm":
+    if model.kind == "s5":
         assert all(id(p) in no_decay_ids for p in model.sequence_model.ssm_parameters())
     assert all(p.dim() >= 2 for p in decay["params"])
     scheduler = world_model_lr_scheduler(optimizer, warmup=4)
@@ -424,7 +462,7 @@ def test_optimizer_groups(kind):
     assert optimizer.param_groups[0]["lr"] == pytest.approx(model.config.lr)
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", ALL_KINDS)
 def test_bf16_autocast_opt_in(kind):
     space = spaces.Box(0, 255, (3, 16, 16), np.uint8)
     th.manual_seed(0)

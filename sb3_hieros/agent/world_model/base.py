@@ -4,7 +4,7 @@ Both models describe the world by a latent state ``(h_t, z_t)``: ``h_t`` determi
 ``stoch_groups`` one-hot categoricals of ``stoch_classes`` classes::
 
     Sequence model:     (m_t, h_t) = f(h_{t-1}, z_{t-1}, a_{t-1})
-    Encoder:            z_t ~ q(z_t | o_t)            (S5WM)   or  q(z_t | h_t, o_t)  (RSSM)
+    Encoder:            z_t ~ q(z_t | o_t)            (S5WM)   or  q(z_t | h_t, o_t)  (RSSM; WorldModelConfig.posterior)
     Dynamics predictor: z^_t ~ p(z^_t | m_t)          (S5WM)   or  p(z^_t | h_t)      (RSSM)
     Reward, continue and decoder heads on (h_t, z_t).
 
@@ -34,6 +34,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 import torch as th
+import torch.nn.functional as F
 from gymnasium import spaces
 from torch import nn
 
@@ -56,7 +57,7 @@ from sb3_hieros.nn.distributions import (
 )
 from sb3_hieros.nn.guard import step_if_finite
 from sb3_hieros.nn.metrics import metric_floats
-from sb3_hieros.nn.networks import MLP, bf16_autocast, check_bf16, evaluation_mode
+from sb3_hieros.nn.networks import MLP, bf16_autocast, check_bf16, evaluation_mode, trunc_normal_init_
 from sb3_hieros.type_aliases import SequenceSamples
 
 __all__ = ["REWARD_BINS", "ObsDict", "WorldModel"]
@@ -141,6 +142,31 @@ class WorldModel(nn.Module):
         :param compile: ``torch.compile`` opt-in
         """
         raise NotImplementedError
+
+    def _build_split_posterior(self, hidden: int) -> None:
+        """The posterior layer ``Linear -> LayerNorm -> SiLU -> Linear`` on ``[h_t, e_t]`` (on e_t alone where
+        ``config.posterior`` says so), its first Linear split by input so that the embedding's part is computed for a
+        whole chunk outside the time loop of :meth:`_observe` (:meth:`_split_posterior`).
+
+        :param hidden: width of the hidden layer
+        """
+        self.post_deter = nn.Linear(self.deter_dim, hidden, bias=False) if self.config.posterior_reads_state else None
+        self.post_embed = nn.Linear(self.embed_dim, hidden, bias=False)
+        self.post_norm = nn.LayerNorm(hidden, eps=1e-3)
+        self.post_out = nn.Linear(hidden, self.stoch_dim)
+        for layer in (self.post_deter, self.post_embed, self.post_out):
+            if layer is not None:
+                trunc_normal_init_(layer)
+
+    def _split_posterior(self, deter: th.Tensor, embed_pre: th.Tensor) -> th.Tensor:
+        """Raw posterior logits ``q(z_t | h_t, e_t)`` (or ``q(z_t | e_t)``) from h_t and ``post_embed(e_t)``.
+
+        :param deter: (..., D) h_t
+        :param embed_pre: (..., hidden) the embedding's part, ``post_embed(e_t)``
+        :return: (..., G*K)
+        """
+        pre = embed_pre if self.post_deter is None else self.post_deter(deter) + embed_pre
+        return self.post_out(F.silu(self.post_norm(pre)))
 
     # ---------------------------------------------------------------- small helpers
 

@@ -5,14 +5,12 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch as th
-import torch.nn.functional as F
-from torch import nn
 
 from sb3_hieros.agent.world_model.base import ObsDict, WorldModel
 from sb3_hieros.agent.world_model.latent import LatentState
 from sb3_hieros.agent.world_model.layers import InputLayer, LayerNormGRUCell
 from sb3_hieros.config import WorldModelConfig
-from sb3_hieros.nn.networks import MLP, trunc_normal_init_, without_autocast
+from sb3_hieros.nn.networks import MLP, without_autocast
 
 __all__ = ["RSSMWorldModel"]
 
@@ -20,9 +18,10 @@ __all__ = ["RSSMWorldModel"]
 class RSSMWorldModel(WorldModel):
     """DreamerV3's recurrent state-space model behind the same interface (ablation 5.3.2).
 
-    ``h_t = GRU(h_{t-1}, Inp(z_{t-1}, a_{t-1}))``, posterior ``q(z_t | h_t, e_t)``, prior ``p(z^_t | h_t)``. The
-    GRU state is the deterministic state (``seq`` and ``deter`` are the same tensor). The posterior depends on
-    ``h_t``, so :meth:`observe` runs a time loop; everything that does not depend on the loop is hoisted out of it.
+    ``h_t = GRU(h_{t-1}, Inp(z_{t-1}, a_{t-1}))``, posterior ``q(z_t | h_t, e_t)`` (``q(z_t | e_t)`` with
+    ``config.posterior="observation"``), prior ``p(z^_t | h_t)``. The GRU state is the deterministic state (``seq``
+    and ``deter`` are the same tensor). The GRU reads the sampled z_{t-1}, so :meth:`observe` runs a time loop;
+    everything that does not depend on the loop is hoisted out of it.
 
     :param observation_space: observation space of this level
     :param action_dim: size of the action vector
@@ -39,13 +38,7 @@ class RSSMWorldModel(WorldModel):
         self.inp = InputLayer(self.stoch_dim, self.action_dim, c.hidden, c.action_input == "separate")
         self.gru = LayerNormGRUCell(c.hidden, self.deter_dim)
         self.prior_net = MLP(self.deter_dim, self.stoch_dim, c.hidden, layers=1)
-        # posterior MLP on [h_t, e_t], split into halves so that the embedding half leaves the loop
-        self.post_deter = nn.Linear(self.deter_dim, c.hidden, bias=False)
-        self.post_embed = nn.Linear(self.embed_dim, c.hidden, bias=False)
-        self.post_norm = nn.LayerNorm(c.hidden, eps=1e-3)
-        self.post_out = nn.Linear(c.hidden, self.stoch_dim)
-        for layer in (self.post_deter, self.post_embed, self.post_out):
-            trunc_normal_init_(layer)
+        self._build_split_posterior(c.hidden)
         self._cell: Callable[..., tuple[th.Tensor, th.Tensor]] = self._cell_eager
         if compile:
             self._cell = th.compile(self._cell_eager)
@@ -68,8 +61,7 @@ class RSSMWorldModel(WorldModel):
         """
         x = self.inp.join(stoch, action_pre)
         deter = self.gru(x, deter)
-        post_raw = self.post_out(F.silu(self.post_norm(self.post_deter(deter) + embed_pre)))
-        return deter, post_raw
+        return deter, self._split_posterior(deter, embed_pre)
 
     def _observe(
         self, obs: ObsDict, actions: th.Tensor, is_first: th.Tensor, state: LatentState | None, deterministic: bool

@@ -22,6 +22,10 @@ class S5WorldModel(WorldModel):
     """S5WM (thesis 4.4): posterior from the observation alone, a stack of resettable S5 blocks as sequence model,
     ``h_t`` read out of the internal S5 states (thesis 5.3.5) and the prior from the stack output ``m_t``.
 
+    With ``config.posterior="state"`` (not in the thesis) the posterior reads ``[h_t, e_t]`` as RSSM's does, so z_t
+    carries what h_t did not predict rather than all of o_t; training then steps the stack through the chunk
+    (:meth:`_observe_stepwise`) instead of scanning it in parallel.
+
     With ``config.deter_from == "gru"`` (not in the thesis), ``h_t = GRU(h_{t-1}, m_t)``: DreamerV3's GRU cell on the
     stack output keeps a non-linear recurrent state, and the prior reads ``h_t``, as RSSM's does. The S5 stack still
     runs as a parallel scan in training; the cell runs as a loop over the chunk (as RSSM's), and ``h_t`` is part of
@@ -50,7 +54,11 @@ class S5WorldModel(WorldModel):
             trunc_normal_init_(self.deter_out)
         prior_in = self.deter_dim if self._deter_in_context else c.s5_model_dim
         self.prior_net = MLP(prior_in, self.stoch_dim, c.hidden, layers=1)
-        self.post_net = MLP(self.embed_dim, self.stoch_dim, c.hidden, layers=1)
+        self._posterior_in_loop = c.posterior_reads_state
+        if self._posterior_in_loop:
+            self._build_split_posterior(c.hidden)
+        else:
+            self.post_net = MLP(self.embed_dim, self.stoch_dim, c.hidden, layers=1)
         if compile:
             # the S5 module's own opt-in: real-split parallel scan under torch.compile; the step form stays eager
             compile_s5(self.sequence_model)
@@ -105,6 +113,8 @@ class S5WorldModel(WorldModel):
     def _observe(
         self, obs: ObsDict, actions: th.Tensor, is_first: th.Tensor, state: LatentState | None, deterministic: bool
     ) -> tuple[LatentState, th.Tensor]:
+        if self._posterior_in_loop:
+            return self._observe_stepwise(obs, actions, is_first, state, deterministic)
         batch, length = actions.shape[:2]
         embed = self._embed(obs, (batch, length))  # (B, T, E)
         post_raw = self.post_net(embed)
@@ -123,6 +133,41 @@ class S5WorldModel(WorldModel):
             prior_raw = self.prior_net(out)
         prior_logits = self._normalise(prior_raw)
         return LatentState(stoch, deter, seq, post_logits, prior_logits), prior_logits
+
+    def _observe_stepwise(
+        self, obs: ObsDict, actions: th.Tensor, is_first: th.Tensor, state: LatentState | None, deterministic: bool
+    ) -> tuple[LatentState, th.Tensor]:
+        """:meth:`_observe` with a posterior that reads h_t (``config.posterior="state"``): z_t depends on h_t, which
+        depends on z_{t-1}, so the S5 stack runs in step form over the chunk (one discretisation for the chunk, in
+        the graph), as the RSSM runs its GRU; what does not depend on the loop is computed outside it.
+        """
+        batch, length = actions.shape[:2]
+        state = self.initial_state(batch) if state is None else state
+        embed = self._embed(obs, (batch, length))  # (B, T, E)
+        keep = (~is_first).unsqueeze(-1).to(actions.dtype)  # (B, T, 1)
+        embed_pre = self.post_embed(embed).float()  # (B, T, hidden)
+        action_pre = self.inp.action_features(actions * keep).float()  # (B, T, .)
+        stoch, deter, seq = state.stoch, state.deter, state.seq
+        stochs, deters, seqs, outs, logits = [], [], [], [], []
+        with without_autocast(embed.device.type), self.reuse_step_weights():
+            steps = zip(embed_pre.unbind(1), action_pre.unbind(1), keep.unbind(1), is_first.unbind(1), strict=True)
+            for e_t, a_t, k_t, first_t in steps:
+                out, seq = self.sequence_model._step(self.inp.join(stoch * k_t, a_t), seq, first_t)
+                if self._deter_in_context:
+                    deter = self.deter_cell(out, deter * k_t)
+                else:
+                    deter = self._deterministic_state(seq, out)
+                stoch, post_logits = self._draw(self._split_posterior(deter, e_t), deterministic)
+                stochs.append(stoch)
+                deters.append(deter)
+                seqs.append(seq)
+                outs.append(out)
+                logits.append(post_logits)
+        deter_seq = th.stack(deters, 1)  # (B, T, D)
+        prior_raw = self.prior_net(deter_seq if self._deter_in_context else th.stack(outs, 1))
+        prior_logits = self._normalise(prior_raw)
+        post = LatentState(th.stack(stochs, 1), deter_seq, th.stack(seqs, 1), th.stack(logits, 1), prior_logits)
+        return post, prior_logits
 
     def _prior_step(
         self, state: LatentState, action: th.Tensor, reset: th.Tensor | None
@@ -145,7 +190,10 @@ class S5WorldModel(WorldModel):
         batch = int(action.shape[0])
         deter, seq, prior_raw = self._prior_step(state, action, is_first)
         embed = self._embed(obs, (batch,))
-        post_raw = self.post_net(embed)
+        if self._posterior_in_loop:
+            post_raw = self._split_posterior(deter, self.post_embed(embed))
+        else:
+            post_raw = self.post_net(embed)
         stoch, post_logits = self._draw(post_raw, deterministic)
         return LatentState(stoch, deter, seq, post_logits, self._normalise(prior_raw))
 
