@@ -141,6 +141,18 @@ CHANGE_SUITES = {
         '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 4, "imag_horizon": 32}, '
         '"policy_kwargs": {"bf16": false}}',
     ],
+    "posterior_state_world_model_updates_4": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs",
+        '{"config_overrides": {"world_model": {"posterior": "state"}, "world_model_updates": 4}, '
+        '"policy_kwargs": {"bf16": false}}',
+    ],
+    "rssm_posterior_observation_world_model_updates_4": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs",
+        '{"config_overrides": {"world_model": {"kind": "rssm", "posterior": "observation"}, '
+        '"world_model_updates": 4}, "policy_kwargs": {"bf16": false}}',
+    ],
 }  # fmt: skip
 
 

@@ -47,6 +47,7 @@ THESIS: dict[str, str] = {
     "world_model.deter_dim": "4.4, table 4.6.3",
     "world_model.deter_from": "4.4.2; ablation 5.3.5",
     "world_model.action_input": "4.4.2 (joint); separate: later DreamerV3 releases",
+    "world_model.posterior": "4.4.2 (observation, S5WM); state: DreamerV3's RSSM",
     "world_model.stoch_groups": "4.4, table 4.6.3 (z_t 32x32)",
     "world_model.stoch_classes": "4.4, table 4.6.3 (z_t 32x32)",
     "world_model.hidden": "4.4 (value: public code)",
