@@ -154,7 +154,7 @@ CHANGE_SUITES = {
         '"world_model_updates": 4}, "policy_kwargs": {"bf16": false}}',
     ],
     "rssm_world_model_updates_4_bf16": [
-        "--tasks", "Pendulum-v1", "cartpole-balance-proprio",
+        "--tasks", "CartPole-v1", "Pendulum-v1", "cartpole-balance-proprio",
         "--hieros-kwargs",
         '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 4}, '
         '"policy_kwargs": {"bf16": true}}',
