@@ -99,6 +99,7 @@ class WorldModelConfig:
         thesis' S5WM, whose training scans the whole chunk in parallel); ``"state"``: ``[h_t, e_t]`` (DreamerV3's RSSM),
         so z_t holds what h_t did not predict; S5WM then runs its stack step by step over the chunk in training, as
         the RSSM runs its GRU; ``"auto"``: ``"observation"`` for S5WM, ``"state"`` for RSSM
+    :param stoch_groups: number of categorical latents in z_t
     :param stoch_classes: classes per categorical latent
     :param hidden: width of the prior/posterior/input layers
     :param cnn_depth: channels of the first conv layer (doubled per stage)
