@@ -26,7 +26,8 @@ def test_cpu_suite_table_is_made_from_runs_jsonl(tmp_path):
     assert (tmp_path / "table.md").read_text() == (DOCS / "cpu_suite" / "table.md").read_text()
 
 
-#: The single-change suites next to the main one: folder under docs/cpu_suite -> arguments of their --report.
+#: The single-change suites next to the main one: folder under docs/cpu_suite -> arguments of their --report
+#: (three seeds unless the arguments name --seeds).
 CHANGE_SUITES = {
     "bf16": [
         "--tasks", "CartPole-v1", "cartpole-balance-proprio", "Pendulum-v1",
@@ -147,6 +148,12 @@ CHANGE_SUITES = {
         '{"config_overrides": {"world_model": {"posterior": "state"}, "world_model_updates": 4}, '
         '"policy_kwargs": {"bf16": false}}',
     ],
+    "rssm_world_model_updates_4_five_seeds": [
+        "--tasks", "cartpole-balance-proprio", "--seeds", "5",
+        "--hieros-kwargs",
+        '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 4}, '
+        '"policy_kwargs": {"bf16": false}}',
+    ],
     "rssm_posterior_observation_world_model_updates_4": [
         "--tasks", "cartpole-balance-proprio",
         "--hieros-kwargs",
@@ -168,7 +175,8 @@ def test_change_suite_tables_are_made_from_their_runs(tmp_path, name):
 
     folder = DOCS / "cpu_suite" / name
     shutil.copy(folder / "runs.jsonl", tmp_path / "runs.jsonl")
-    args = [*CHANGE_SUITES[name], "--algos", "hieros", "--seeds", "3", "--steps", "10000", "--report"]
+    seeds = [] if "--seeds" in CHANGE_SUITES[name] else ["--seeds", "3"]
+    args = [*CHANGE_SUITES[name], "--algos", "hieros", *seeds, "--steps", "10000", "--report"]
     cpu_suite.main([*args, "--out", str(tmp_path)])
     assert (tmp_path / "table.md").read_text() == (folder / "table.md").read_text()
 
