@@ -148,6 +148,9 @@ CHANGE_SUITES = {
         '{"config_overrides": {"world_model": {"posterior": "state"}, "world_model_updates": 4}, '
         '"policy_kwargs": {"bf16": false}}',
     ],
+    "preset_five_seeds": [
+        "--tasks", "cartpole-balance-proprio", "--seeds", "5", "--hieros-kwargs", MAIN_HIEROS_KWARGS,
+    ],
     "rssm_world_model_updates_4_five_seeds": [
         "--tasks", "cartpole-balance-proprio", "--seeds", "5",
         "--hieros-kwargs",
