@@ -26,6 +26,13 @@ def test_cpu_suite_table_is_made_from_runs_jsonl(tmp_path):
     assert (tmp_path / "table.md").read_text() == (DOCS / "cpu_suite" / "table.md").read_text()
 
 
+#: The HIEROS keywords of the RSSM setting's runs (three-seed and five-seed folders): RSSM, four updates, float32.
+RSSM_WM4_KWARGS = (
+    '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 4}, '
+    '"policy_kwargs": {"bf16": false}}'
+)
+
+
 #: The single-change suites next to the main one: folder under docs/cpu_suite -> arguments of their --report
 #: (three seeds unless the arguments name --seeds).
 CHANGE_SUITES = {
@@ -133,8 +140,7 @@ CHANGE_SUITES = {
     "rssm_world_model_updates_4": [
         "--tasks", "CartPole-v1", "Pendulum-v1", "cartpole-balance-proprio", "cartpole-balance-pixels",
         "--hieros-kwargs",
-        '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 4}, '
-        '"policy_kwargs": {"bf16": false}}',
+        RSSM_WM4_KWARGS,
     ],
     "rssm_world_model_updates_4_imag_horizon_32": [
         "--tasks", "CartPole-v1", "Pendulum-v1", "cartpole-balance-proprio",
@@ -154,8 +160,7 @@ CHANGE_SUITES = {
     "rssm_world_model_updates_4_five_seeds": [
         "--tasks", "cartpole-balance-proprio", "--seeds", "5",
         "--hieros-kwargs",
-        '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 4}, '
-        '"policy_kwargs": {"bf16": false}}',
+        RSSM_WM4_KWARGS,
     ],
     "rssm_posterior_observation_world_model_updates_4": [
         "--tasks", "cartpole-balance-proprio",
