@@ -33,6 +33,19 @@ RSSM_WM4_KWARGS = (
 )
 
 
+#: The HIEROS keywords of the runs of the three levers together: RSSM, four updates, horizon 32, float32.
+RSSM_WM4_H32_KWARGS = (
+    '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 4, "imag_horizon": 32}, '
+    '"policy_kwargs": {"bf16": false}}'
+)
+
+#: The HIEROS keywords of the S5 world model with the posterior that reads h_t: four updates, float32.
+POSTERIOR_STATE_WM4_KWARGS = (
+    '{"config_overrides": {"world_model": {"posterior": "state"}, "world_model_updates": 4}, '
+    '"policy_kwargs": {"bf16": false}}'
+)
+
+
 #: The single-change suites next to the main one: folder under docs/cpu_suite -> arguments of their --report
 #: (three seeds unless the arguments name --seeds).
 CHANGE_SUITES = {
@@ -145,14 +158,22 @@ CHANGE_SUITES = {
     "rssm_world_model_updates_4_imag_horizon_32": [
         "--tasks", "CartPole-v1", "Pendulum-v1", "cartpole-balance-proprio",
         "--hieros-kwargs",
-        '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 4, "imag_horizon": 32}, '
-        '"policy_kwargs": {"bf16": false}}',
+        RSSM_WM4_H32_KWARGS,
+    ],
+    "rssm_world_model_updates_4_imag_horizon_32_five_seeds": [
+        "--tasks", "CartPole-v1", "Pendulum-v1", "cartpole-balance-proprio", "--seeds", "5",
+        "--hieros-kwargs",
+        RSSM_WM4_H32_KWARGS,
     ],
     "posterior_state_world_model_updates_4": [
         "--tasks", "cartpole-balance-proprio",
         "--hieros-kwargs",
-        '{"config_overrides": {"world_model": {"posterior": "state"}, "world_model_updates": 4}, '
-        '"policy_kwargs": {"bf16": false}}',
+        POSTERIOR_STATE_WM4_KWARGS,
+    ],
+    "posterior_state_world_model_updates_4_five_seeds": [
+        "--tasks", "cartpole-balance-proprio", "--seeds", "5",
+        "--hieros-kwargs",
+        POSTERIOR_STATE_WM4_KWARGS,
     ],
     "preset_five_seeds": [
         "--tasks", "cartpole-balance-proprio", "--seeds", "5", "--hieros-kwargs", MAIN_HIEROS_KWARGS,
