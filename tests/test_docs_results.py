@@ -156,7 +156,7 @@ CHANGE_SUITES = {
         RSSM_WM4_KWARGS,
     ],
     "rssm_world_model_updates_4_imag_horizon_32": [
-        "--tasks", "CartPole-v1", "Pendulum-v1", "cartpole-balance-proprio",
+        "--tasks", "CartPole-v1", "Pendulum-v1", "cartpole-balance-proprio", "cartpole-balance-pixels",
         "--hieros-kwargs",
         RSSM_WM4_H32_KWARGS,
     ],
