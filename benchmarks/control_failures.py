@@ -20,6 +20,13 @@ actions (the training behaviour), and reports per model:
 * **world model** (level 0, on the held-out episodes): open-loop predictions over ``--horizon`` steps from the
   posterior state at every ``--stride``-th step with the actions the agent actually took: mean absolute reward error
   and the observation error relative to a repeat-the-last-observation baseline (vector observations);
+* **state probe** (level 0, tasks whose simulator state :func:`physical_state` reads: DMC and gymnasium's classic
+  control, from pixels too; on all held-out episodes): a ridge regression from the world-state features of the
+  posterior to the simulator state, fitted and scored on alternating blocks of steps: the share of each state
+  entry's variance the filtered latent holds (R^2), and, open loop over ``--horizon`` steps with the actions taken,
+  the probed prediction's error against a repeat-the-start-state baseline. From pixels it says whether the world
+  model has recovered the state (on cartpole the pole's angle and angular velocity) and predicts its motion, in the
+  same units as from proprioception;
 * **action response** (level 0, Box actions, on the held-out episodes): from every ``--stride``-th state the real
   environment (a copy of it) and the world model (open loop from the posterior state) are driven for
   ``--response-steps`` steps with the action held at +1 and at -1; the regression slope of the model's difference
@@ -61,7 +68,7 @@ import math
 import os
 import pathlib
 from collections import defaultdict
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from copy import deepcopy
 from dataclasses import dataclass, field
 from typing import Any
@@ -87,8 +94,10 @@ __all__ = [
     "critic_figures",
     "feedback_figures",
     "open_loop_figures",
+    "physical_state",
     "play",
     "pull_figures",
+    "state_probe_figures",
 ]
 
 #: An action entry counts as "at the bound" when its magnitude (in [-1, 1] units) exceeds this.
@@ -117,6 +126,8 @@ class Episode:
     std: list[np.ndarray] = field(default_factory=list)
     #: level-0 extrinsic value at each visited state
     values: list[float] = field(default_factory=list)
+    #: the simulator's state behind each observation (:func:`physical_state`), None where the env does not expose it
+    states: list[np.ndarray | None] = field(default_factory=list)
     truncated: bool = False
 
     @property
@@ -130,6 +141,31 @@ def _level_goal(hierarchy: Any, level: int, codes: Sequence[th.Tensor]) -> th.Te
     if level == hierarchy.n_levels - 1:
         return None
     return hierarchy.levels[level].goal_features(codes[level + 1])
+
+
+def physical_state(env: Any) -> np.ndarray | None:
+    """The simulator's state behind the env's current observation, as one float64 vector, where the env exposes it.
+
+    dm_control tasks (through shimmy, whose env forwards ``task`` and ``physics``): the task's own observation of
+    the physics, the entries ``dmc_proprio`` observes, in the task's order, also behind a pixel env (cartpole: cart
+    position, pole cosine and sine, cart and pole velocities). gymnasium's classic-control envs: their ``state``.
+
+    :param env: a gymnasium env (wrappers included)
+    :return: (S,) state, or None for envs without one of the two
+    """
+    base = env.unwrapped
+    task, physics = getattr(base, "task", None), getattr(base, "physics", None)
+    if task is not None and physics is not None and hasattr(task, "get_observation"):
+        return np.concatenate(
+            [np.asarray(v, dtype=np.float64).reshape(-1) for v in task.get_observation(physics).values()]
+        )
+    state = getattr(base, "state", None)
+    if state is None:
+        return None
+    try:
+        return np.asarray(state, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        return None
 
 
 @th.no_grad()
@@ -169,6 +205,7 @@ def play(model: HIEROS, env: Any, seed: int, deterministic: bool) -> Episode:
             episode.std.append(dist.std[0].float().numpy())
         episode.values.append(float(ac0.critics["extrinsic"].value(feat)[0]) if "extrinsic" in ac0.critics else 0.0)
         episode.observations.append(np.asarray(obs, dtype=np.float64) if isinstance(obs, np.ndarray) else obs)
+        episode.states.append(physical_state(env))
         episode.actions.append(state.actions[0][0].float().numpy())
         action = policy.env_actions(state.actions[0])[0]
         obs, reward, terminated, truncated, _ = env.step(action)
@@ -269,6 +306,111 @@ def open_loop_figures(model: HIEROS, episodes: Sequence[Episode], horizon: int, 
     }
     if obs_err:
         out["world_model/obs_error_vs_repeat_last"] = float(np.mean(obs_err) / max(np.mean(base_err), 1e-12))
+    return out
+
+
+#: Ridge penalties (on standardised features) :func:`fit_state_probe` chooses from.
+PROBE_PENALTIES = tuple(10.0**k for k in range(-2, 6))
+#: Steps of the blocks :func:`state_probe_figures` splits episodes into (at least twice the open-loop horizon): a
+#: probe is fitted on every other block and scored on the blocks between, so neighbouring steps never sit on both sides.
+PROBE_BLOCK = 50
+
+
+def _ridge_path(x: np.ndarray, y: np.ndarray, penalties: Sequence[float]) -> list[np.ndarray]:
+    """Ridge coefficients of ``y`` on ``x`` (both centred), (P, S), for each penalty (one SVD for all)."""
+    u, s, vt = np.linalg.svd(x, full_matrices=False)
+    uy = u.T @ y
+    return [vt.T @ ((s / (s**2 + penalty))[:, None] * uy) for penalty in penalties]
+
+
+def fit_state_probe(
+    features: np.ndarray, states: np.ndarray, block: int = PROBE_BLOCK
+) -> Callable[[np.ndarray], np.ndarray]:
+    """A linear map from world-state features to simulator states, by ridge regression on standardised features,
+    its penalty the one of :data:`PROBE_PENALTIES` that predicts best from alternating blocks of ``block`` rows
+    (fitted on the even blocks, scored on the odd ones), then refitted on all rows.
+
+    :param features: (N, P) features, in time order
+    :param states: (N, S) states
+    :param block: rows per block of the penalty's choice
+    :return: a function from (M, P) features to (M, S) predicted states
+    """
+    mean, scale = features.mean(0), np.maximum(features.std(0), 1e-6)
+    x = (features - mean) / scale
+    y_mean = states.mean(0)
+    y = states - y_mean
+    even = (np.arange(len(x)) // block) % 2 == 0
+    penalty = PROBE_PENALTIES[-1]
+    if even.any() and (~even).any():
+        xe, ye = x[even], y[even]
+        coefs = _ridge_path(xe - xe.mean(0), ye - ye.mean(0), PROBE_PENALTIES)
+        errors = [(((x[~even] - xe.mean(0)) @ c + ye.mean(0) - y[~even]) ** 2).sum() for c in coefs]
+        penalty = PROBE_PENALTIES[int(np.argmin(errors))]
+    (coef,) = _ridge_path(x, y, [penalty])
+    return lambda f: ((f - mean) / scale) @ coef + y_mean
+
+
+@th.no_grad()
+def state_probe_figures(model: HIEROS, episodes: Sequence[Episode], horizon: int, stride: int) -> dict[str, float]:
+    """How much of the simulator's state level 0's world model holds, filtered and predicted open loop.
+
+    Every episode is cut into blocks of ``max(PROBE_BLOCK, 2 * horizon)`` steps; the blocks alternate between two
+    folds. A linear probe (:func:`fit_state_probe`) from the world-state features of the posterior to the simulator
+    state (:func:`physical_state`) is fitted on each fold and scored on the other: on the posterior states, and on
+    the states imagined from every ``stride``-th posterior state over ``horizon`` steps with the actions the agent
+    took (starts whose ``horizon`` steps stay inside their block, so no target was fitted on).
+
+    :param model: the agent that played the episodes
+    :param episodes: episodes of any behaviour (deterministic and sampled together cover more states)
+    :param horizon: open-loop steps
+    :param stride: a start every ``stride`` steps
+    :return: per state entry d, ``state_probe/posterior_r2/s{d}`` (the share of its variance the probe of the
+        posterior explains) and ``state_probe/open_loop_vs_repeat/s{d}`` (the open-loop prediction's mean squared
+        error over steps 1..H against that of repeating the start state; below 1: the model predicts the motion),
+        and both over all entries (``posterior_r2`` their mean, ``open_loop_vs_repeat`` the ratio of the summed
+        errors, each entry in units of its spread); nothing where a state is missing
+    """
+    if not episodes or any(s is None for e in episodes for s in e.states):
+        return {}
+    wm = model.policy.hierarchy.levels[0].world_model
+    block = max(PROBE_BLOCK, 2 * horizon)
+    features = np.concatenate(
+        [wm.features(stack_states(e.latents[0], 0).flatten_batch()).double().numpy() for e in episodes]
+    )  # (T, P)
+    states = np.concatenate([np.stack(e.states) for e in episodes])  # (T, S)
+    fold = np.concatenate([(np.arange(len(e.states)) // block) % 2 for e in episodes])
+    if fold.all() or not fold.any():
+        return {}
+    probes = [fit_state_probe(features[fold == k], states[fold == k], block) for k in (0, 1)]
+    predicted = np.empty_like(states)
+    for k in (0, 1):
+        predicted[fold == k] = probes[1 - k](features[fold == k])
+    spread = np.maximum(states.std(0), 1e-12)
+    r2 = 1.0 - ((predicted - states) ** 2).mean(0) / spread**2
+    out = {f"state_probe/posterior_r2/s{d}": float(v) for d, v in enumerate(r2)}
+    out["state_probe/posterior_r2"] = float(r2.mean())
+    error, repeat = np.zeros(len(spread)), np.zeros(len(spread))
+    for k in (0, 1):
+        starts = [
+            (e, t)
+            for e in episodes
+            for t in range(0, len(e.states) - horizon, stride)
+            if (t // block) % 2 == k and t % block + horizon < block
+        ]
+        if not starts:
+            continue
+        state = stack_states([e.latents[0][t] for e, t in starts], 0).flatten_batch()
+        start_states = np.stack([e.states[t] for e, t in starts])  # (N, S)
+        for j in range(horizon):
+            actions = th.as_tensor(np.stack([e.actions[t + j] for e, t in starts]), dtype=th.float32)  # (N, A)
+            state, _ = wm.img_step(state, actions, deterministic=True)
+            truth = np.stack([e.states[t + j + 1] for e, t in starts])  # (N, S)
+            error += (((probes[1 - k](wm.features(state).double().numpy()) - truth) / spread) ** 2).sum(0)
+            repeat += (((start_states - truth) / spread) ** 2).sum(0)
+    if repeat.any():
+        ratio = error / np.maximum(repeat, 1e-12)
+        out.update({f"state_probe/open_loop_vs_repeat/s{d}": float(v) for d, v in enumerate(ratio)})
+        out["state_probe/open_loop_vs_repeat"] = float(error.sum() / repeat.sum())
     return out
 
 
@@ -713,6 +855,7 @@ def analyse(
     out.update(action_figures(model, greedy))
     out.update(feedback_figures(model, greedy))
     out.update(open_loop_figures(model, greedy, horizon, stride))
+    out.update(state_probe_figures(model, [*greedy, *sampled], horizon, stride))
     seeds = [seed + j for j in range(episodes)]
     out.update(action_response_figures(model, suite, task, seeds, greedy, response_steps, stride))
     out.update(critic_figures(model, greedy))

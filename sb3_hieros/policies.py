@@ -388,6 +388,22 @@ class HierosPolicy(BasePolicy):
         action = state.actions[0]
         return action.argmax(-1) if isinstance(self.action_space, spaces.Discrete) else action
 
+    def obs_to_tensor(self, observation: np.ndarray | dict[str, np.ndarray]) -> tuple[PyTorchObs, bool]:
+        """SB3's conversion (:meth:`~stable_baselines3.common.policies.BaseModel.obs_to_tensor`) of arrays of any
+        memory layout: a view with negative strides, as dm_control's renders reach an env's observation, is copied
+        first, since torch cannot wrap it.
+
+        :param observation: one observation or a batch, an array or a dict of arrays
+        :return: the tensor (or dict of tensors) and whether the observation was a batch
+        """
+        if isinstance(observation, dict):
+            observation = {
+                k: np.ascontiguousarray(v) if isinstance(v, np.ndarray) else v for k, v in observation.items()
+            }
+        elif isinstance(observation, np.ndarray):
+            observation = np.ascontiguousarray(observation)
+        return super().obs_to_tensor(observation)
+
     def predict(
         self,
         observation: np.ndarray | dict[str, np.ndarray],

@@ -67,6 +67,9 @@ def test_every_figure_of_both_models(pendulum_models, capsys):
         assert figures["level0/pull_obs_r2"] <= 1.0
         assert all(-1.0 <= c <= 1.0 for c in ascent if not math.isnan(c))
         assert figures["imagination/starts"] >= 1 and figures["imagination/reward_real"] <= 0.0
+        # Pendulum's simulator state is (angle, angular velocity): one probe figure per entry
+        assert {f"state_probe/posterior_r2/s{d}" for d in range(2)} <= set(figures)
+        assert figures["state_probe/posterior_r2"] <= 1.0 and figures["state_probe/open_loop_vs_repeat"] >= 0.0
     # the two-level model has a subgoal term at level 0 and a level above whose subgoals change or not
     assert "level0/grad_share/subgoal" in results["two"] and "level0/grad_share/subgoal" not in results["one"]
     assert 0.0 <= results["two"]["level1/subgoal_change_rate"] <= 1.0
@@ -196,3 +199,66 @@ def test_pull_is_split_into_its_reward_and_critic_paths(pendulum_models, monkeyp
     flat = control_failures.pull_figures(model, episodes, starts=16, samples=4)
     assert flat["level0/pull_critic_share"] == 0.0
     assert flat["level0/pull_obs_r2"] == pytest.approx(flat["level0/pull_reward_obs_r2"])
+
+
+def test_physical_state_is_what_proprioception_observes_also_behind_pixels():
+    proprio, pixels = (
+        make_env("dmc_proprio", "cartpole-balance", seed=4),
+        make_env("dmc_vision", "cartpole-balance", seed=4),
+    )
+    obs, _ = proprio.reset(seed=4)
+    pixels.reset(seed=4)
+    state = control_failures.physical_state(proprio)
+    assert state.shape == (5,) and np.allclose(np.sort(state), np.sort(obs), atol=1e-6)  # the same entries
+    assert np.allclose(control_failures.physical_state(pixels), state)  # the same seed starts in the same state
+    action = np.full(proprio.action_space.shape, 0.5, dtype=np.float32)
+    obs, *_ = proprio.step(action)
+    pixels.step(action)
+    assert np.allclose(np.sort(control_failures.physical_state(proprio)), np.sort(obs), atol=1e-6)
+    assert np.allclose(control_failures.physical_state(pixels), control_failures.physical_state(proprio))
+    proprio.close()
+    pixels.close()
+    pendulum = make_env("classic", "Pendulum-v1", seed=0)
+    pendulum.reset(seed=0)
+    assert np.array_equal(control_failures.physical_state(pendulum), pendulum.unwrapped.state)
+    assert control_failures.physical_state(SimpleNamespace(unwrapped=SimpleNamespace())) is None
+
+
+def test_state_probe_recovers_a_linear_map():
+    rng = np.random.default_rng(0)
+    weights = rng.normal(size=(12, 3))
+    features = np.concatenate([rng.normal(size=(300, 12)), np.ones((300, 2))], axis=1)  # two constant columns
+    probe = control_failures.fit_state_probe(features, features[:, :12] @ weights + 0.01 * rng.normal(size=(300, 3)))
+    new = np.concatenate([rng.normal(size=(50, 12)), np.ones((50, 2))], axis=1)
+    assert probe(new) == pytest.approx(new[:, :12] @ weights, abs=0.05)
+    noise = control_failures.fit_state_probe(features, rng.normal(size=(300, 3)))  # nothing to find: close to the mean
+    assert np.abs(noise(new)).mean() < 0.5
+
+
+def test_state_probe_of_a_model_that_holds_and_predicts_the_state(pendulum_models, monkeypatch):
+    # features that are the simulator state, and an imagination that steps to the next recorded state, must be read
+    # with R^2 = 1 and predict with no open-loop error; a model whose imagination stands still must equal the baseline
+    model = HIEROS.load(pendulum_models["one"], device="cpu")
+    wm = model.policy.hierarchy.levels[0].world_model
+    env = make_env("classic", "Pendulum-v1", seed=3)
+    first, second = (control_failures.play(model, env, seed, False) for seed in (3, 4))
+    env.close()
+    states = {}
+    for e in (first, second):
+        for t, latent in enumerate(e.latents[0]):
+            e.latents[0][t] = latent._replace(stoch=th.full_like(latent.stoch, float(len(states))))
+            states[len(states)] = th.as_tensor(e.states[t], dtype=th.float32)
+    monkeypatch.setattr(wm, "features", lambda state: th.stack([states[int(i)] for i in state.stoch[:, 0]]))
+
+    def img_step(state, action, deterministic):
+        return state._replace(stoch=state.stoch + 1.0), None
+
+    monkeypatch.setattr(wm, "img_step", img_step)
+    figures = control_failures.state_probe_figures(model, [first, second], horizon=4, stride=20)
+    assert figures["state_probe/posterior_r2"] == pytest.approx(1.0, abs=1e-3)
+    assert figures["state_probe/open_loop_vs_repeat"] == pytest.approx(0.0, abs=1e-3)
+    monkeypatch.setattr(wm, "img_step", lambda state, action, deterministic: (state, None))
+    still = control_failures.state_probe_figures(model, [first, second], horizon=4, stride=20)
+    assert still["state_probe/open_loop_vs_repeat"] == pytest.approx(1.0, abs=1e-2)
+    second.states[5] = None  # an env without a simulator state: no figures
+    assert control_failures.state_probe_figures(model, [first, second], horizon=4, stride=20) == {}

@@ -59,6 +59,18 @@ def test_learn_and_predict(policy, env_fn):
     assert env.action_space.contains(action)
 
 
+def test_predict_takes_views_with_negative_strides():
+    # dm_control's renders reach an env's observation as flipped views, which torch cannot wrap as they are
+    env = FakeImageEnv(screen_height=36, screen_width=36, n_channels=3, discrete=False)
+    model = HIEROS("CnnPolicy", env, **tiny_kwargs())
+    obs = np.random.default_rng(0).integers(0, 256, size=(36, 36, 3), dtype=np.uint8)
+    view = np.flip(np.flip(obs, 0).copy(), 0)
+    assert view.strides[0] < 0 and np.array_equal(view, obs)
+    expected, _ = model.predict(obs, deterministic=True)
+    np.testing.assert_array_equal(model.predict(view, deterministic=True)[0], expected)
+    np.testing.assert_array_equal(model.predict(view[None], deterministic=True)[0], expected[None])
+
+
 def test_policy_aliases():
     assert HIEROS.policy_aliases == {
         "MlpPolicy": MlpPolicy,
