@@ -21,12 +21,15 @@ actions (the training behaviour), and reports per model:
   posterior state at every ``--stride``-th step with the actions the agent actually took: mean absolute reward error
   and the observation error relative to a repeat-the-last-observation baseline (vector observations);
 * **state probe** (level 0, tasks whose simulator state :func:`physical_state` reads: DMC and gymnasium's classic
-  control, from pixels too; on all held-out episodes): a ridge regression from the world-state features of the
-  posterior to the simulator state, fitted and scored on alternating blocks of steps: the share of each state
-  entry's variance the filtered latent holds (R^2), and, open loop over ``--horizon`` steps with the actions taken,
-  the probed prediction's error against a repeat-the-start-state baseline. From pixels it says whether the world
-  model has recovered the state (on cartpole the pole's angle and angular velocity) and predicts its motion, in the
-  same units as from proprioception;
+  control, from pixels too): a ridge regression from the world-state features of the posterior to the simulator
+  state, fitted and scored on alternating blocks of steps: the share of each state entry's variance the filtered
+  latent holds (R^2), and, open loop over ``--horizon`` steps with the actions taken, the probed prediction's error
+  against a repeat-the-start-state baseline. Once on the held-out episodes (``state_probe/agent``: the states the
+  policy visits; a policy that balances well visits few, which makes single entries' R^2 unstable), once on as many
+  episodes with uniformly random actions (``state_probe/random``: the same states for every model, so models from
+  pixels and from proprioception, or from different points of training, are compared on one distribution). It says
+  whether the world model has recovered the state (on cartpole the pole's angle and angular velocity) and predicts
+  its motion;
 * **action response** (level 0, Box actions, on the held-out episodes): from every ``--stride``-th state the real
   environment (a copy of it) and the world model (open loop from the posterior state) are driven for
   ``--response-steps`` steps with the action held at +1 and at -1; the regression slope of the model's difference
@@ -168,14 +171,32 @@ def physical_state(env: Any) -> np.ndarray | None:
         return None
 
 
+def _random_action(space: spaces.Space, rng: np.random.Generator, like: th.Tensor) -> th.Tensor:
+    """A level-0 action vector drawn uniformly: in [-1, 1] per entry (Box), a one-hot of a random index (Discrete).
+
+    :param space: the env's action space
+    :param rng: the draws' generator
+    :param like: (1, A) the policy's action, for size, dtype and device
+    :return: (1, A) action
+    """
+    size = int(like.shape[-1])
+    if isinstance(space, spaces.Discrete):
+        action = np.eye(size)[rng.integers(size)]
+    else:
+        action = rng.uniform(-1.0, 1.0, size=size)
+    return th.as_tensor(action, dtype=like.dtype, device=like.device)[None]
+
+
 @th.no_grad()
-def play(model: HIEROS, env: Any, seed: int, deterministic: bool) -> Episode:
+def play(model: HIEROS, env: Any, seed: int, deterministic: bool, random_actions: bool = False) -> Episode:
     """One episode with the hierarchy's recurrent state threaded (the acting path of ``predict``).
 
     :param model: the agent
     :param env: a gymnasium env of the task the model was trained on
-    :param seed: seed of ``env.reset``
+    :param seed: seed of ``env.reset`` (and of the random actions)
     :param deterministic: policy modes instead of samples
+    :param random_actions: take uniformly random actions (:func:`_random_action`) instead of the policy's; the
+        hierarchy filters them as its own, so every model sees the same episodes
     :return: the episode's record
     """
     policy = model.policy
@@ -186,10 +207,14 @@ def play(model: HIEROS, env: Any, seed: int, deterministic: bool) -> Episode:
     state = hierarchy.initial_state(1)
     first = np.ones(1, dtype=bool)
     episode = Episode()
+    rng = np.random.default_rng(seed)
     while True:
         batch = obs[None] if isinstance(obs, np.ndarray) else {k: v[None] for k, v in obs.items()}
         tensor, _ = policy.obs_to_tensor(batch)
         state, step = hierarchy.step(state, tensor, first, deterministic)
+        if random_actions:  # the action in force is the one taken and the one the world model steps with next
+            drawn = _random_action(model.action_space, rng, state.actions[0])
+            state = state._replace(actions=(drawn, *state.actions[1:]))
         first = np.zeros(1, dtype=bool)
         for i, latent in enumerate(state.latents):
             episode.latents[i].append(latent)
@@ -351,7 +376,9 @@ def fit_state_probe(
 
 
 @th.no_grad()
-def state_probe_figures(model: HIEROS, episodes: Sequence[Episode], horizon: int, stride: int) -> dict[str, float]:
+def state_probe_figures(
+    model: HIEROS, episodes: Sequence[Episode], horizon: int, stride: int, name: str = "state_probe"
+) -> dict[str, float]:
     """How much of the simulator's state level 0's world model holds, filtered and predicted open loop.
 
     Every episode is cut into blocks of ``max(PROBE_BLOCK, 2 * horizon)`` steps; the blocks alternate between two
@@ -364,8 +391,9 @@ def state_probe_figures(model: HIEROS, episodes: Sequence[Episode], horizon: int
     :param episodes: episodes of any behaviour (deterministic and sampled together cover more states)
     :param horizon: open-loop steps
     :param stride: a start every ``stride`` steps
-    :return: per state entry d, ``state_probe/posterior_r2/s{d}`` (the share of its variance the probe of the
-        posterior explains) and ``state_probe/open_loop_vs_repeat/s{d}`` (the open-loop prediction's mean squared
+    :param name: the figures' prefix
+    :return: per state entry d, ``<name>/posterior_r2/s{d}`` (the share of its variance the probe of the
+        posterior explains) and ``<name>/open_loop_vs_repeat/s{d}`` (the open-loop prediction's mean squared
         error over steps 1..H against that of repeating the start state; below 1: the model predicts the motion),
         and both over all entries (``posterior_r2`` their mean, ``open_loop_vs_repeat`` the ratio of the summed
         errors, each entry in units of its spread); nothing where a state is missing
@@ -387,8 +415,8 @@ def state_probe_figures(model: HIEROS, episodes: Sequence[Episode], horizon: int
         predicted[fold == k] = probes[1 - k](features[fold == k])
     spread = np.maximum(states.std(0), 1e-12)
     r2 = 1.0 - ((predicted - states) ** 2).mean(0) / spread**2
-    out = {f"state_probe/posterior_r2/s{d}": float(v) for d, v in enumerate(r2)}
-    out["state_probe/posterior_r2"] = float(r2.mean())
+    out = {f"{name}/posterior_r2/s{d}": float(v) for d, v in enumerate(r2)}
+    out[f"{name}/posterior_r2"] = float(r2.mean())
     error, repeat = np.zeros(len(spread)), np.zeros(len(spread))
     for k in (0, 1):
         starts = [
@@ -409,8 +437,8 @@ def state_probe_figures(model: HIEROS, episodes: Sequence[Episode], horizon: int
             repeat += (((start_states - truth) / spread) ** 2).sum(0)
     if repeat.any():
         ratio = error / np.maximum(repeat, 1e-12)
-        out.update({f"state_probe/open_loop_vs_repeat/s{d}": float(v) for d, v in enumerate(ratio)})
-        out["state_probe/open_loop_vs_repeat"] = float(error.sum() / repeat.sum())
+        out.update({f"{name}/open_loop_vs_repeat/s{d}": float(v) for d, v in enumerate(ratio)})
+        out[f"{name}/open_loop_vs_repeat"] = float(error.sum() / repeat.sum())
     return out
 
 
@@ -847,6 +875,7 @@ def analyse(
     th.manual_seed(seed)
     greedy = [play(model, env, seed + j, True) for j in range(episodes)]
     sampled = [play(model, env, seed + episodes + j, False) for j in range(episodes)]
+    randomly = [play(model, env, seed + 2 * episodes + j, False, random_actions=True) for j in range(episodes)]
     env.close()
     out = {
         "return/deterministic": float(np.mean([e.total for e in greedy])),
@@ -855,7 +884,8 @@ def analyse(
     out.update(action_figures(model, greedy))
     out.update(feedback_figures(model, greedy))
     out.update(open_loop_figures(model, greedy, horizon, stride))
-    out.update(state_probe_figures(model, [*greedy, *sampled], horizon, stride))
+    out.update(state_probe_figures(model, [*greedy, *sampled], horizon, stride, "state_probe/agent"))
+    out.update(state_probe_figures(model, randomly, horizon, stride, "state_probe/random"))
     seeds = [seed + j for j in range(episodes)]
     out.update(action_response_figures(model, suite, task, seeds, greedy, response_steps, stride))
     out.update(critic_figures(model, greedy))

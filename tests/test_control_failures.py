@@ -68,8 +68,10 @@ def test_every_figure_of_both_models(pendulum_models, capsys):
         assert all(-1.0 <= c <= 1.0 for c in ascent if not math.isnan(c))
         assert figures["imagination/starts"] >= 1 and figures["imagination/reward_real"] <= 0.0
         # Pendulum's simulator state is (angle, angular velocity): one probe figure per entry
-        assert {f"state_probe/posterior_r2/s{d}" for d in range(2)} <= set(figures)
-        assert figures["state_probe/posterior_r2"] <= 1.0 and figures["state_probe/open_loop_vs_repeat"] >= 0.0
+        for behaviour in ("agent", "random"):
+            probe = f"state_probe/{behaviour}"
+            assert {f"{probe}/posterior_r2/s{d}" for d in range(2)} <= set(figures)
+            assert figures[f"{probe}/posterior_r2"] <= 1.0 and figures[f"{probe}/open_loop_vs_repeat"] >= 0.0
     # the two-level model has a subgoal term at level 0 and a level above whose subgoals change or not
     assert "level0/grad_share/subgoal" in results["two"] and "level0/grad_share/subgoal" not in results["one"]
     assert 0.0 <= results["two"]["level1/subgoal_change_rate"] <= 1.0
@@ -262,3 +264,21 @@ def test_state_probe_of_a_model_that_holds_and_predicts_the_state(pendulum_model
     assert still["state_probe/open_loop_vs_repeat"] == pytest.approx(1.0, abs=1e-2)
     second.states[5] = None  # an env without a simulator state: no figures
     assert control_failures.state_probe_figures(model, [first, second], horizon=4, stride=20) == {}
+
+
+def test_random_actions_are_taken_and_filtered(pendulum_models):
+    model = HIEROS.load(pendulum_models["one"], device="cpu")
+    env = make_env("classic", "Pendulum-v1", seed=2)
+    first, again = (control_failures.play(model, env, 2, True, random_actions=True) for _ in range(2))
+    greedy = control_failures.play(model, env, 2, True)
+    env.close()
+    taken = np.stack(first.actions)
+    assert np.array_equal(taken, np.stack(again.actions)) and first.rewards == again.rewards  # seeded draws
+    assert np.abs(taken).max() <= 1.0 and taken.std() > 0.3  # uniform in [-1, 1], not the policy's modes
+    assert not np.allclose(taken, np.stack(first.mode))
+    assert first.rewards != greedy.rewards
+    # the recorded actions are the ones the env received: replayed in a fresh env they give the same rewards
+    replay = make_env("classic", "Pendulum-v1", seed=2)
+    replay.reset(seed=2)
+    rewards = [float(replay.step(model.policy.env_actions(th.as_tensor(a)[None])[0])[1]) for a in first.actions]
+    assert rewards == pytest.approx(first.rewards)
