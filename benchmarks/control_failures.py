@@ -29,7 +29,8 @@ actions (the training behaviour), and reports per model:
   episodes with uniformly random actions (``state_probe/random``: the same states for every model, so models from
   pixels and from proprioception, or from different points of training, are compared on one distribution). It says
   whether the world model has recovered the state (on cartpole the pole's angle and angular velocity) and predicts
-  its motion;
+  its motion; beside it, the same probe from the last two observations themselves (the read-out without a world
+  model);
 * **action response** (level 0, Box actions, on the held-out episodes): from every ``--stride``-th state the real
   environment (a copy of it) and the world model (open loop from the posterior state) are driven for
   ``--response-steps`` steps with the action held at +1 and at -1; the regression slope of the model's difference
@@ -352,8 +353,8 @@ def fit_state_probe(
     features: np.ndarray, states: np.ndarray, block: int = PROBE_BLOCK
 ) -> Callable[[np.ndarray], np.ndarray]:
     """A linear map from world-state features to simulator states, by ridge regression on standardised features,
-    its penalty the one of :data:`PROBE_PENALTIES` that predicts best from alternating blocks of ``block`` rows
-    (fitted on the even blocks, scored on the odd ones), then refitted on all rows.
+    for each state entry with the penalty of :data:`PROBE_PENALTIES` that predicts it best from alternating blocks
+    of ``block`` rows (fitted on the even blocks, scored on the odd ones), then refitted on all rows.
 
     :param features: (N, P) features, in time order
     :param states: (N, S) states
@@ -365,13 +366,14 @@ def fit_state_probe(
     y_mean = states.mean(0)
     y = states - y_mean
     even = (np.arange(len(x)) // block) % 2 == 0
-    penalty = PROBE_PENALTIES[-1]
+    best = np.full(y.shape[1], len(PROBE_PENALTIES) - 1)  # (S,) index of each state entry's penalty
     if even.any() and (~even).any():
         xe, ye = x[even], y[even]
         coefs = _ridge_path(xe - xe.mean(0), ye - ye.mean(0), PROBE_PENALTIES)
-        errors = [(((x[~even] - xe.mean(0)) @ c + ye.mean(0) - y[~even]) ** 2).sum() for c in coefs]
-        penalty = PROBE_PENALTIES[int(np.argmin(errors))]
-    (coef,) = _ridge_path(x, y, [penalty])
+        errors = [(((x[~even] - xe.mean(0)) @ c + ye.mean(0) - y[~even]) ** 2).sum(0) for c in coefs]  # each (S,)
+        best = np.argmin(np.stack(errors), axis=0)
+    path = _ridge_path(x, y, PROBE_PENALTIES)
+    coef = np.stack([path[i][:, d] for d, i in enumerate(best)], axis=1)  # (P, S)
     return lambda f: ((f - mean) / scale) @ coef + y_mean
 
 
@@ -393,9 +395,11 @@ def state_probe_figures(
     :param stride: a start every ``stride`` steps
     :param name: the figures' prefix
     :return: per state entry d, ``<name>/posterior_r2/s{d}`` (the share of its variance the probe of the
-        posterior explains) and ``<name>/open_loop_vs_repeat/s{d}`` (the open-loop prediction's mean squared
-        error over steps 1..H against that of repeating the start state; below 1: the model predicts the motion),
-        and both over all entries (``posterior_r2`` their mean, ``open_loop_vs_repeat`` the ratio of the summed
+        posterior explains), ``<name>/observation_r2/s{d}`` (the same from the last two observations themselves,
+        flattened: the linear read-out without a world model; array observations) and
+        ``<name>/open_loop_vs_repeat/s{d}`` (the open-loop prediction's mean squared error over steps 1..H against
+        that of repeating the start state; below 1: the model predicts the motion), and each over all entries
+        (``posterior_r2`` and ``observation_r2`` their mean, ``open_loop_vs_repeat`` the ratio of the summed
         errors, each entry in units of its spread); nothing where a state is missing
     """
     if not episodes or any(s is None for e in episodes for s in e.states):
@@ -410,13 +414,28 @@ def state_probe_figures(
     if fold.all() or not fold.any():
         return {}
     probes = [fit_state_probe(features[fold == k], states[fold == k], block) for k in (0, 1)]
-    predicted = np.empty_like(states)
-    for k in (0, 1):
-        predicted[fold == k] = probes[1 - k](features[fold == k])
     spread = np.maximum(states.std(0), 1e-12)
-    r2 = 1.0 - ((predicted - states) ** 2).mean(0) / spread**2
+
+    def out_of_fold_r2(inputs: np.ndarray, fitted: Sequence[Callable[[np.ndarray], np.ndarray]]) -> np.ndarray:
+        predicted = np.empty_like(states)
+        for k in (0, 1):
+            predicted[fold == k] = fitted[1 - k](inputs[fold == k])
+        return 1.0 - ((predicted - states) ** 2).mean(0) / spread**2  # (S,)
+
+    r2 = out_of_fold_r2(features, probes)
     out = {f"{name}/posterior_r2/s{d}": float(v) for d, v in enumerate(r2)}
     out[f"{name}/posterior_r2"] = float(r2.mean())
+    if all(isinstance(o, np.ndarray) for e in episodes for o in e.observations):
+        # the same probe from the last two observations themselves: what a linear read-out gets without a world model
+        pairs = np.concatenate(
+            [
+                np.concatenate([flat, np.concatenate([flat[:1], flat[:-1]])], axis=1)
+                for flat in (np.stack(e.observations).reshape(len(e.observations), -1) for e in episodes)
+            ]
+        )  # (T, 2 * prod(obs_shape))
+        raw = out_of_fold_r2(pairs, [fit_state_probe(pairs[fold == k], states[fold == k], block) for k in (0, 1)])
+        out.update({f"{name}/observation_r2/s{d}": float(v) for d, v in enumerate(raw)})
+        out[f"{name}/observation_r2"] = float(raw.mean())
     error, repeat = np.zeros(len(spread)), np.zeros(len(spread))
     for k in (0, 1):
         starts = [

@@ -72,6 +72,7 @@ def test_every_figure_of_both_models(pendulum_models, capsys):
             probe = f"state_probe/{behaviour}"
             assert {f"{probe}/posterior_r2/s{d}" for d in range(2)} <= set(figures)
             assert figures[f"{probe}/posterior_r2"] <= 1.0 and figures[f"{probe}/open_loop_vs_repeat"] >= 0.0
+            assert figures[f"{probe}/observation_r2"] <= 1.0
     # the two-level model has a subgoal term at level 0 and a level above whose subgoals change or not
     assert "level0/grad_share/subgoal" in results["two"] and "level0/grad_share/subgoal" not in results["one"]
     assert 0.0 <= results["two"]["level1/subgoal_change_rate"] <= 1.0
@@ -235,6 +236,11 @@ def test_state_probe_recovers_a_linear_map():
     assert probe(new) == pytest.approx(new[:, :12] @ weights, abs=0.05)
     noise = control_failures.fit_state_probe(features, rng.normal(size=(300, 3)))  # nothing to find: close to the mean
     assert np.abs(noise(new)).mean() < 0.5
+    # each entry has its penalty: an entry with nothing to find does not pull the others' fit towards the mean
+    mixed = control_failures.fit_state_probe(
+        features, np.column_stack([features[:, 0], 1e3 * rng.normal(size=300), features[:, 1]])
+    )
+    assert mixed(new)[:, [0, 2]] == pytest.approx(new[:, :2], abs=0.05)
 
 
 def test_state_probe_of_a_model_that_holds_and_predicts_the_state(pendulum_models, monkeypatch):
@@ -258,6 +264,8 @@ def test_state_probe_of_a_model_that_holds_and_predicts_the_state(pendulum_model
     monkeypatch.setattr(wm, "img_step", img_step)
     figures = control_failures.state_probe_figures(model, [first, second], horizon=4, stride=20)
     assert figures["state_probe/posterior_r2"] == pytest.approx(1.0, abs=1e-3)
+    # Pendulum's observation (cos, sin, angular velocity) holds its angular velocity linearly, not its unwrapped angle
+    assert figures["state_probe/observation_r2/s1"] == pytest.approx(1.0, abs=1e-3)
     assert figures["state_probe/open_loop_vs_repeat"] == pytest.approx(0.0, abs=1e-3)
     monkeypatch.setattr(wm, "img_step", lambda state, action, deterministic: (state, None))
     still = control_failures.state_probe_figures(model, [first, second], horizon=4, stride=20)

@@ -46,6 +46,13 @@ POSTERIOR_STATE_WM4_KWARGS = (
 )
 
 
+#: The HIEROS keywords of the S5 world model with the posterior that reads h_t, four updates and horizon 32, float32.
+POSTERIOR_STATE_WM4_H32_KWARGS = (
+    '{"config_overrides": {"world_model": {"posterior": "state"}, "world_model_updates": 4, "imag_horizon": 32}, '
+    '"policy_kwargs": {"bf16": false}}'
+)
+
+
 #: The single-change suites next to the main one: folder under docs/cpu_suite -> arguments of their --report
 #: (three seeds unless the arguments name --seeds).
 CHANGE_SUITES = {
@@ -169,6 +176,9 @@ CHANGE_SUITES = {
         "--tasks", "cartpole-balance-proprio",
         "--hieros-kwargs",
         POSTERIOR_STATE_WM4_KWARGS,
+    ],
+    "posterior_state_world_model_updates_4_imag_horizon_32": [
+        "--tasks", "cartpole-balance-proprio", "--hieros-kwargs", POSTERIOR_STATE_WM4_H32_KWARGS,
     ],
     "posterior_state_world_model_updates_4_five_seeds": [
         "--tasks", "cartpole-balance-proprio", "--seeds", "5",
