@@ -85,7 +85,7 @@ from benchmarks._timing import environment_header
 from benchmarks.suites import SUITES, make_env
 from sb3_hieros import HIEROS
 from sb3_hieros.agent.returns import cumulative_discount, lambda_returns
-from sb3_hieros.agent.world_model import LatentState, stack_states
+from sb3_hieros.agent.world_model import LatentState, WorldModel, stack_states
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -297,11 +297,28 @@ def feedback_figures(model: HIEROS, episodes: Sequence[Episode]) -> dict[str, fl
 
 
 @th.no_grad()
+def open_loop(wm: WorldModel, starts: Sequence[tuple[Episode, int]], horizon: int) -> Iterator[tuple[int, LatentState]]:
+    """Level 0's world model driven open loop, deterministic, from the posterior states of ``starts`` with the
+    actions the agent took, all starts as one batch.
+
+    :param wm: level 0's world model
+    :param starts: (episode, step t) pairs with at least ``horizon`` actions after t
+    :param horizon: open-loop steps H
+    :return: yields j and the imagined states s_{t+j+1} (batch (N,)) for j = 0 .. H-1
+    """
+    state = stack_states([e.latents[0][t] for e, t in starts], 0).flatten_batch()
+    for j in range(horizon):
+        actions = th.as_tensor(np.stack([e.actions[t + j] for e, t in starts]), dtype=th.float32)  # (N, A)
+        state, _ = wm.img_step(state, actions, deterministic=True)
+        yield j, state
+
+
+@th.no_grad()
 def open_loop_figures(model: HIEROS, episodes: Sequence[Episode], horizon: int, stride: int) -> dict[str, float]:
     """Level 0's open-loop reward and observation errors with the actions actually taken.
 
-    From the posterior state s_t the world model imagines s_{t+1} .. s_{t+H} with the actions a_t .. a_{t+H-1};
-    the reward head at s_{t+j} predicts the reward of arriving at o_{t+j}, the decoder o_{t+j}.
+    From the posterior state s_t the world model imagines s_{t+1} .. s_{t+H} with the actions a_t .. a_{t+H-1}
+    (:func:`open_loop`); the reward head at s_{t+j} predicts the reward of arriving at o_{t+j}, the decoder o_{t+j}.
 
     :param model: the agent
     :param episodes: held-out episodes
@@ -311,27 +328,30 @@ def open_loop_figures(model: HIEROS, episodes: Sequence[Episode], horizon: int, 
         observations, ``world_model/obs_error_vs_repeat_last``
     """
     wm = model.policy.hierarchy.levels[0].world_model
+    starts = [(e, t) for e in episodes for t in range(0, len(e.rewards) - horizon, stride)]
+    if not starts:  # every episode ended within the horizon
+        return {"world_model/reward_mae": float("nan"), "world_model/reward_abs_mean": float("nan")}
     reward_err, reward_abs, obs_err, base_err = [], [], [], []
     vector = isinstance(model.observation_space, spaces.Box) and len(model.observation_space.shape) == 1
-    for e in episodes:
-        for t in range(0, len(e.rewards) - horizon, stride):
-            state = e.latents[0][t]
-            for j in range(horizon):
-                action = th.as_tensor(e.actions[t + j], dtype=th.float32)[None]
-                state, _ = wm.img_step(state, action, deterministic=True)
-                reward_err.append(abs(float(wm.reward(state)[0]) - e.rewards[t + j]))
-                reward_abs.append(abs(e.rewards[t + j]))
-                if vector and t + j + 1 < len(e.observations):
-                    target = e.observations[t + j + 1]
-                    pred = wm.decode(state)[0].double().numpy()
-                    obs_err.append(float(((pred - target) ** 2).mean()))
-                    base_err.append(float(((e.observations[t] - target) ** 2).mean()))
+    for j, state in open_loop(wm, starts, horizon):
+        rewards = np.array([e.rewards[t + j] for e, t in starts])  # (N,)
+        reward_err.append(np.abs(wm.reward(state).double().numpy() - rewards))
+        reward_abs.append(np.abs(rewards))
+        if vector:
+            inside = [i for i, (e, t) in enumerate(starts) if t + j + 1 < len(e.observations)]
+            predicted = wm.decode(state).double().numpy()[inside]  # (n, D)
+            target = np.stack([starts[i][0].observations[starts[i][1] + j + 1] for i in inside])
+            repeat = np.stack([starts[i][0].observations[starts[i][1]] for i in inside])
+            obs_err.append(((predicted - target) ** 2).mean(1))
+            base_err.append(((repeat - target) ** 2).mean(1))
     out = {
-        "world_model/reward_mae": float(np.mean(reward_err)),
-        "world_model/reward_abs_mean": float(np.mean(reward_abs)),
+        "world_model/reward_mae": float(np.concatenate(reward_err).mean()),
+        "world_model/reward_abs_mean": float(np.concatenate(reward_abs).mean()),
     }
-    if obs_err:
-        out["world_model/obs_error_vs_repeat_last"] = float(np.mean(obs_err) / max(np.mean(base_err), 1e-12))
+    if obs_err and sum(map(len, obs_err)):
+        out["world_model/obs_error_vs_repeat_last"] = float(
+            np.concatenate(obs_err).mean() / max(np.concatenate(base_err).mean(), 1e-12)
+        )
     return out
 
 
@@ -446,11 +466,8 @@ def state_probe_figures(
         ]
         if not starts:
             continue
-        state = stack_states([e.latents[0][t] for e, t in starts], 0).flatten_batch()
         start_states = np.stack([e.states[t] for e, t in starts])  # (N, S)
-        for j in range(horizon):
-            actions = th.as_tensor(np.stack([e.actions[t + j] for e, t in starts]), dtype=th.float32)  # (N, A)
-            state, _ = wm.img_step(state, actions, deterministic=True)
+        for j, state in open_loop(wm, starts, horizon):
             truth = np.stack([e.states[t + j + 1] for e, t in starts])  # (N, S)
             error += (((probes[1 - k](wm.features(state).double().numpy()) - truth) / spread) ** 2).sum(0)
             repeat += (((start_states - truth) / spread) ** 2).sum(0)
@@ -502,6 +519,8 @@ def action_response_figures(
             if t % stride == 0:
                 branches = {}
                 for sign, act in held.items():
+                    # a pixel env's copy renders the original's frame (gymnasium's AddRenderObservation keeps a
+                    # closure over its own wrapper); only its rewards and vector observations are read
                     copy, state = deepcopy(env), e.latents[0][t]
                     real_o, real_r, model_o, model_r = [], [], [], []
                     for _ in range(steps):

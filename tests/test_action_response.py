@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import math
 
+import gymnasium as gym
 import numpy as np
 import pytest
 
 from benchmarks import action_response as bench
+from benchmarks.control_failures import physical_state
 
 
 @pytest.mark.parametrize(
@@ -17,6 +19,10 @@ from benchmarks import action_response as bench
         (["--kinds", ","], "--kinds"),
         (["--seeds", ","], "--seeds"),
         (["--updates", "0"], "--updates"),
+        (["--updates", "4800,2400"], "--updates"),
+        (["--updates", "2400,2400"], "--updates"),
+        (["--updates", "many"], "--updates"),
+        (["--episodes", "0"], "--episodes"),
         (["--wm-overrides", '{"kind": "rssm"}'], "--wm-overrides"),
     ],
 )
@@ -63,6 +69,66 @@ def test_held_out_copies_replay_the_recorded_episode():
     np.testing.assert_allclose(obs, data["obs"][episode, step + 1].numpy(), rtol=1e-5, atol=1e-6)
 
 
+def test_the_policies_act_on_the_simulator_state_which_is_the_proprio_observation():
+    data, copies = bench.collect(["feedback"], seed=2, branch=True)
+    assert data["state"].shape == data["obs"].shape
+    np.testing.assert_array_equal(data["state"].float().numpy(), data["obs"].numpy())
+    episode, step, env = copies[0]
+    env.step(data["prev_action"][episode, step + 1].numpy())
+    np.testing.assert_allclose(physical_state(env), data["state"][episode, step + 1].numpy(), rtol=1e-6, atol=1e-9)
+
+
+def test_train_pauses_after_each_count_and_goes_on():
+    data, _ = bench.collect(["uniform"], seed=1, branch=False)
+    model = bench.make_world_model(bench.world_model_space("dmc_proprio"), 1, bench.get_preset("small").world_model)
+    before = [p.detach().clone() for p in model.parameters()]
+    counts = []
+    for count, metrics in bench.train(model, data, [1, 3], seed=0):
+        counts.append(count)
+        assert math.isfinite(metrics["obs_loss"])
+        changed = [
+            not np.array_equal(b.numpy(), p.detach().numpy()) for b, p in zip(before, model.parameters(), strict=True)
+        ]
+        assert any(changed)  # an update ran before every pause
+        before = [p.detach().clone() for p in model.parameters()]
+    assert counts == [1, 3]
+
+
+@pytest.fixture
+def short_episodes(monkeypatch):
+    """Episodes of 40 agent steps, so that pixel episodes render quickly."""
+    make_env = bench.make_env
+    monkeypatch.setattr(
+        bench, "make_env", lambda *args, **kwargs: gym.wrappers.TimeLimit(make_env(*args, **kwargs), 40)
+    )
+
+
+def test_pixel_episodes_are_channel_first_and_their_copies_replay_the_state(short_episodes):
+    data, copies = bench.collect(["small", "feedback"], seed=3, branch=True, suite="dmc_vision")
+    assert data["obs"].shape == (2, 41, 3, 64, 64) and data["obs"].dtype == bench.th.uint8
+    assert data["state"].shape == (2, 41, 5)
+    assert bench.world_model_space("dmc_vision").shape == (3, 64, 64)
+    assert len(copies) == 2  # step 12 of each episode; step 37 leaves no room for the driven steps
+    for episode, step, env in copies:  # usable after collect, though the original env is the one that renders
+        env.step(data["prev_action"][episode, step + 1].numpy())
+        np.testing.assert_allclose(physical_state(env), data["state"][episode, step + 1].numpy(), rtol=1e-6)
+
+
+def test_tiny_pixel_run_reads_the_state_with_the_probe(short_episodes, capsys):
+    argv = ["--suite", "dmc_vision", "--kinds", "rssm", "--updates", "1,2", "--episodes", "3"]
+    results = bench.main(argv)
+    for count in (1, 2):
+        prefix = f"rssm/0/{count}_updates/"
+        for name in bench.OBS_NAMES:
+            r2 = results[prefix + f"{name}_probe_r2"]
+            assert math.isfinite(r2) and r2 <= 1.0
+            assert results[prefix + f"{name}_recon_rmse"] > 0  # the probe's error on the episodes it was fitted on
+            assert math.isfinite(results[prefix + f"mode_{name}_slope"])
+        assert math.isfinite(results[prefix + "sampled_reward_corr"])
+    assert results["rssm/0/2_updates/train_seconds"] > results["rssm/0/1_updates/train_seconds"]
+    assert "rssm seed 0: 2 updates" in capsys.readouterr().out
+
+
 def test_tiny_run_reports_every_figure(capsys):
     results = bench.main(["--kinds", "s5", "--updates", "2", "--episodes", "2", "--data", "balancing"])
     names = [*bench.OBS_NAMES, "reward"]
@@ -80,6 +146,8 @@ def test_tiny_run_reports_every_figure(capsys):
     assert results["s5/0/pole_angular_velocity_recon_rmse_upright"] > 0  # every episode starts upright
     assert results["s5/0/pole_cos_std_upright"] >= 0
     assert results["s5/0/kl"] >= 0 and results["s5/0/post_entropy"] > 0 and results["s5/0/obs_loss"] > 0
+    for name in bench.OBS_NAMES:
+        assert results[f"s5/0/{name}_probe_r2"] <= 1.0
     assert results["data/0/return_mean"] > 800  # one balancing episode besides the random one
     out = capsys.readouterr().out
     assert "s5 seed 0: 2 updates" in out and "1 balancing episodes, return" in out
