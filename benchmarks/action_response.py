@@ -62,7 +62,7 @@ from stable_baselines3.common.vec_env import VecTransposeImage
 
 from benchmarks._cli import json_object
 from benchmarks._timing import environment_header
-from benchmarks.control_failures import _slope, fit_state_probe, physical_state
+from benchmarks.control_failures import _corr, _slope, fit_state_probe, physical_state
 from benchmarks.suites import make_env
 from sb3_hieros.agent.world_model import (
     LatentState,
@@ -343,8 +343,7 @@ def action_response(
     pairs.append(("reward", np.concatenate(model_rew), np.concatenate(real_rew)))
     for name, model_diff, real_diff in pairs:
         out[f"{name}_slope"] = _slope(model_diff, real_diff)
-        spread = model_diff.std() > 0 and real_diff.std() > 0
-        out[f"{name}_corr"] = float(np.corrcoef(model_diff, real_diff)[0, 1]) if spread else float("nan")
+        out[f"{name}_corr"] = _corr(model_diff, real_diff)
     return out
 
 

@@ -478,6 +478,11 @@ def state_probe_figures(
     return out
 
 
+def _corr(x: np.ndarray, y: np.ndarray) -> float:
+    """Pearson correlation of two series; NaN where either is constant."""
+    return float(np.corrcoef(x, y)[0, 1]) if np.std(x) > 0 and np.std(y) > 0 else float("nan")
+
+
 def _slope(model_diff: np.ndarray, env_diff: np.ndarray) -> float:
     """Least-squares slope of the model's differences onto the environment's (through the origin)."""
     denominator = float((env_diff**2).sum())
@@ -548,8 +553,7 @@ def action_response_figures(
         env.close()
     real_r, model_r = np.array(env_rew), np.array(wm_rew)
     out = {"world_model/action_slope_reward": _slope(model_r, real_r)}
-    spread = real_r.std() > 0 and model_r.std() > 0
-    out["world_model/action_corr_reward"] = float(np.corrcoef(model_r, real_r)[0, 1]) if spread else float("nan")
+    out["world_model/action_corr_reward"] = _corr(model_r, real_r)
     if env_obs:
         real_o, model_o = np.stack(env_obs), np.stack(wm_obs)  # (starts * steps, D)
         for d in range(real_o.shape[1]):
@@ -575,7 +579,7 @@ def critic_figures(model: HIEROS, episodes: Sequence[Episode]) -> dict[str, floa
         values += e.values
         returns += realised[::-1]
     v, r = np.array(values), np.array(returns)
-    corr = float(np.corrcoef(v, r)[0, 1]) if v.std() > 0 and r.std() > 0 else float("nan")
+    corr = _corr(v, r)
     return {
         "critic/value_mean": float(v.mean()),
         "critic/return_mean": float(r.mean()),
@@ -708,10 +712,7 @@ def ascent_figures(
     out = {}
     for j in range(pull.shape[1]):
         for k in range(obs.shape[1]):
-            varies = np.ptp(pull[:, j]) > 0 and np.ptp(obs[:, k]) > 0
-            out[f"level0/ascent_corr_a{j}_obs{k}"] = (
-                float(np.corrcoef(pull[:, j], obs[:, k])[0, 1]) if varies else math.nan
-            )
+            out[f"level0/ascent_corr_a{j}_obs{k}"] = _corr(pull[:, j], obs[:, k])
     return out
 
 
@@ -842,7 +843,7 @@ def pull_figures(model: HIEROS, episodes: Sequence[Episode], starts: int = 128, 
     half = samples // 2
 
     def split_half(x: np.ndarray) -> float:
-        return float(np.corrcoef(x[:, :half].mean(1), x[:, half:].mean(1))[0, 1])
+        return _corr(x[:, :half].mean(1), x[:, half:].mean(1))
 
     mean, var = pull_np.mean(1), pull_np.var(1, ddof=1)
     out = {
@@ -852,7 +853,7 @@ def pull_figures(model: HIEROS, episodes: Sequence[Episode], starts: int = 128, 
         "level0/pull_critic_share": float(
             (critic_np**2).sum() / max((critic_np**2).sum() + (reward_np**2).sum(), 1e-30)
         ),
-        "level0/pull_paths_corr": float(np.corrcoef(reward_np.mean(1), critic_np.mean(1))[0, 1]),
+        "level0/pull_paths_corr": _corr(reward_np.mean(1), critic_np.mean(1)),
     }
     for name, path in (("reward", reward_np), ("critic", critic_np)):
         out[f"level0/pull_{name}_split_half"] = split_half(path)

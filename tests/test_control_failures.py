@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from copy import deepcopy
 from types import SimpleNamespace
 from typing import Any, NamedTuple
@@ -290,3 +291,13 @@ def test_random_actions_are_taken_and_filtered(pendulum_models):
     replay.reset(seed=2)
     rewards = [float(replay.step(model.policy.env_actions(th.as_tensor(a)[None])[0])[1]) for a in first.actions]
     assert rewards == pytest.approx(first.rewards)
+
+
+def test_correlation_of_a_constant_series_is_nan_without_a_warning():
+    x = np.arange(5.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert math.isnan(control_failures._corr(x, np.ones(5)))
+        assert math.isnan(control_failures._corr(np.zeros(5), x))
+    assert control_failures._corr(x, 2 * x + 1) == pytest.approx(1.0)
+    assert control_failures._corr(x, -x) == pytest.approx(-1.0)
