@@ -301,3 +301,30 @@ def test_correlation_of_a_constant_series_is_nan_without_a_warning():
         assert math.isnan(control_failures._corr(np.zeros(5), x))
     assert control_failures._corr(x, 2 * x + 1) == pytest.approx(1.0)
     assert control_failures._corr(x, -x) == pytest.approx(-1.0)
+
+
+def test_the_cart_is_out_of_the_pixel_cameras_view_from_the_limit_on():
+    env = make_env("dmc_vision", "cartpole-balance", seed=0)
+    physics = env.unwrapped.physics
+    orange = []
+    for x in (control_failures.CARTPOLE_OUT_OF_VIEW - 0.1, control_failures.CARTPOLE_OUT_OF_VIEW + 0.01):
+        with physics.reset_context():
+            physics.named.data.qpos["slider"] = x
+            physics.named.data.qpos["hinge_1"] = 0.0
+        image = env.render()  # the pixel suite's frame of the same camera
+        assert image.shape == (64, 64, 3)
+        orange.append(int(((image[..., 0] > 150) & (image[..., 2] < 120)).sum()))  # the cart and pole's colour
+    env.close()
+    assert orange[0] > 0 and orange[1] == 0
+
+
+def test_out_of_view_share_counts_the_cart_beyond_the_limit_on_cartpole_tasks_only():
+    limit = control_failures.CARTPOLE_OUT_OF_VIEW
+    episode = control_failures.Episode()
+    episode.states = [np.array([x, 1.0, 0.0, 0.0, 0.0]) for x in (0.0, limit, -limit - 0.1, 1.0)]
+    figures = control_failures.out_of_view_figures("cartpole-balance", [episode], [episode, episode])
+    assert figures == {
+        "episodes/cart_out_of_view/deterministic": 0.5,
+        "episodes/cart_out_of_view/sampled": 0.5,
+    }
+    assert control_failures.out_of_view_figures("pendulum-swingup", [episode], [episode]) == {}
