@@ -62,7 +62,7 @@ from stable_baselines3.common.vec_env import VecTransposeImage
 
 from benchmarks._cli import json_object
 from benchmarks._timing import environment_header
-from benchmarks.control_failures import _corr, _slope, fit_state_probe, physical_state
+from benchmarks.control_failures import CARTPOLE_OUT_OF_VIEW, _corr, _slope, fit_state_probe, physical_state
 from benchmarks.suites import make_env
 from sb3_hieros.agent.world_model import (
     LatentState,
@@ -112,6 +112,12 @@ def open_loop_actions(kind: str, n: int, rng: np.random.Generator) -> np.ndarray
             out[t] = np.clip(a, -1.0, 1.0)
         return out
     raise ValueError(f"unknown action kind {kind!r}; expected uniform, smooth or small")
+
+
+def cart_out_of_view(data: dict[str, th.Tensor]) -> float:
+    """The share of the steps of ``data`` whose cart is out of the pixel camera's view."""
+    cart = data["state"][..., OBS_NAMES.index("cart_position")]
+    return float((cart.abs() >= CARTPOLE_OUT_OF_VIEW).double().mean())
 
 
 def world_model_space(suite: str) -> spaces.Space:
@@ -391,9 +397,12 @@ def run(
 ) -> dict[str, float]:
     """Train and measure every kind for every seed, after each of ``updates``; prints a line per measurement and
     returns ``kind/seed/name`` figures (``kind/seed/N_updates/name`` with several counts) and
-    ``data/seed/return_mean``, the mean return of the data policy's episodes."""
+    ``data/seed/return_mean``, the mean return of the data policy's episodes; ``data/seed/cart_out_of_view`` and
+    ``held_out/cart_out_of_view``, the share of steps whose cart is out of the pixel camera's view
+    (:data:`~benchmarks.control_failures.CARTPOLE_OUT_OF_VIEW`)."""
     results: dict[str, float] = {}
     held_out, copies = collect(["smooth", "small", "uniform"], seed=99, branch=True, suite=suite)
+    results["held_out/cart_out_of_view"] = cart_out_of_view(held_out)
     effect = one_step_effect(copies)
     for seed in seeds:
         policies = ["uniform"] + [data_kind.replace("-", "_")] * (episodes - 1)
@@ -401,7 +410,12 @@ def run(
         returns = data["reward"][1:].sum(1)  # the episodes of the data policy (the first is uniformly random)
         mean_return = float(returns.mean()) if len(returns) else float("nan")
         results[f"data/{seed}/return_mean"] = mean_return
-        print(f"seed {seed}: {len(returns)} {data_kind} episodes, return {mean_return:.1f} on average", flush=True)
+        results[f"data/{seed}/cart_out_of_view"] = cart_out_of_view(data)
+        print(
+            f"seed {seed}: {len(returns)} {data_kind} episodes, return {mean_return:.1f} on average; the cart out of "
+            f"the pixel camera's view in {cart_out_of_view(data):.0%} of the steps",
+            flush=True,
+        )
         for kind in kinds:
             th.manual_seed(seed)
             config = dataclasses.replace(get_preset("small").world_model, **{**overrides, "kind": kind})

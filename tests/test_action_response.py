@@ -149,6 +149,10 @@ def test_tiny_run_reports_every_figure(capsys):
     for name in bench.OBS_NAMES:
         assert results[f"s5/0/{name}_probe_r2"] <= 1.0
     assert results["data/0/return_mean"] > 800  # one balancing episode besides the random one
+    assert (
+        0.0 < results["data/0/cart_out_of_view"] < 0.05
+    )  # the random episode leaves the view briefly, balancing never
+    assert 0.0 < results["held_out/cart_out_of_view"] < 0.5  # the random actions sometimes do
     out = capsys.readouterr().out
     assert "s5 seed 0: 2 updates" in out and "1 balancing episodes, return" in out
 
