@@ -123,7 +123,9 @@ def cart_out_of_view(data: dict[str, th.Tensor]) -> float:
 def world_model_space(suite: str) -> spaces.Space:
     """The observation space a level-0 world model sees on :data:`TASK`: images channel-first, as SB3's
     ``VecTransposeImage`` gives them to the agent."""
-    space = make_env(suite, TASK).observation_space
+    env = make_env(suite, TASK)
+    space = env.observation_space
+    env.close()
     return VecTransposeImage.transpose_space(space) if is_image_space(space) else space
 
 
@@ -140,19 +142,17 @@ def collect(
     :param suite: one of :data:`SUITES`
     :return: ``obs`` (E, T, 5) or (E, T, 3, 64, 64) uint8, ``state`` (E, T, 5) (the simulator state, float64),
         ``prev_action`` (E, T, 1), ``reward`` (E, T), ``is_first`` (E, T) and the copies as (episode, step, env)
-        where ``obs[e, step]`` is the copy's last observation
+        where ``state[e, step]`` is the copy's simulator state (and ``obs[e, step]`` its last vector observation)
     """
     rows: dict[str, list[np.ndarray]] = {"obs": [], "state": [], "prev_action": [], "reward": [], "is_first": []}
     copies = []
-    channels_first = is_image_space(make_env(suite, TASK).observation_space)
     for e, kind in enumerate(kinds):
         rng = np.random.default_rng(seed * 1000 + e)
         env = make_env(suite, TASK, seed=seed * 1000 + e)
         obs, _ = env.reset(seed=seed * 1000 + e)
         state = physical_state(env)
-        w = rng.normal(
-            size=state.shape[0]
-        )  # drawn for every kind, so an episode's noise is the same whichever w it uses
+        # drawn for every kind, so an episode's noise is the same whichever w it uses
+        w = rng.normal(size=state.shape[0])
         if kind == "one_policy":
             w = np.random.default_rng(seed).normal(size=state.shape[0])
         planned = None if kind in ("feedback", "one_policy", "balancing") else open_loop_actions(kind, 10_000, rng)
@@ -182,7 +182,8 @@ def collect(
             # over its own wrapper, which deepcopy shares), so an env with copies stays open
             env.close()
         observations = np.stack(o)
-        rows["obs"].append(observations.transpose(0, 3, 1, 2) if channels_first else observations.astype(np.float32))
+        images = observations.ndim == 4  # (T, H, W, C) renders, stored channel-first as the agent sees them
+        rows["obs"].append(observations.transpose(0, 3, 1, 2) if images else observations.astype(np.float32))
         rows["state"].append(np.stack(s))
         rows["prev_action"].append(np.asarray(pa, np.float32))
         rows["reward"].append(np.asarray(r, np.float32))

@@ -360,8 +360,8 @@ def open_loop_figures(model: HIEROS, episodes: Sequence[Episode], horizon: int, 
         rewards = np.array([e.rewards[t + j] for e, t in starts])  # (N,)
         reward_err.append(np.abs(wm.reward(state).double().numpy() - rewards))
         reward_abs.append(np.abs(rewards))
-        if vector:
-            inside = [i for i, (e, t) in enumerate(starts) if t + j + 1 < len(e.observations)]
+        inside = [i for i, (e, t) in enumerate(starts) if t + j + 1 < len(e.observations)] if vector else []
+        if inside:
             predicted = wm.decode(state).double().numpy()[inside]  # (n, D)
             target = np.stack([starts[i][0].observations[starts[i][1] + j + 1] for i in inside])
             repeat = np.stack([starts[i][0].observations[starts[i][1]] for i in inside])
@@ -371,7 +371,7 @@ def open_loop_figures(model: HIEROS, episodes: Sequence[Episode], horizon: int, 
         "world_model/reward_mae": float(np.concatenate(reward_err).mean()),
         "world_model/reward_abs_mean": float(np.concatenate(reward_abs).mean()),
     }
-    if obs_err and sum(map(len, obs_err)):
+    if obs_err:
         out["world_model/obs_error_vs_repeat_last"] = float(
             np.concatenate(obs_err).mean() / max(np.concatenate(base_err).mean(), 1e-12)
         )
