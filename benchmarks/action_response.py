@@ -62,7 +62,14 @@ from stable_baselines3.common.vec_env import VecTransposeImage
 
 from benchmarks._cli import json_object
 from benchmarks._timing import environment_header
-from benchmarks.control_failures import CARTPOLE_OUT_OF_VIEW, _corr, _slope, fit_state_probe, physical_state
+from benchmarks.control_failures import (
+    _corr,
+    _slope,
+    cart_out_of_view,
+    fit_state_probe,
+    physical_state,
+    r2_per_entry,
+)
 from benchmarks.suites import make_env
 from sb3_hieros.agent.world_model import (
     LatentState,
@@ -112,12 +119,6 @@ def open_loop_actions(kind: str, n: int, rng: np.random.Generator) -> np.ndarray
             out[t] = np.clip(a, -1.0, 1.0)
         return out
     raise ValueError(f"unknown action kind {kind!r}; expected uniform, smooth or small")
-
-
-def cart_out_of_view(data: dict[str, th.Tensor]) -> float:
-    """The share of the steps of ``data`` whose cart is out of the pixel camera's view."""
-    cart = data["state"][..., OBS_NAMES.index("cart_position")]
-    return float((cart.abs() >= CARTPOLE_OUT_OF_VIEW).double().mean())
 
 
 def world_model_space(suite: str) -> spaces.Space:
@@ -236,22 +237,15 @@ Readout = Callable[[LatentState], np.ndarray]
 
 
 @th.no_grad()
-def posterior_features(model: WorldModel, data: dict[str, th.Tensor]) -> np.ndarray:
-    """World-state features of the posterior modes of every step of ``data``, (E * T, P)."""
+def posterior(model: WorldModel, data: dict[str, th.Tensor]) -> LatentState:
+    """The posterior modes of every step of ``data``, batch (E, T)."""
     post, _ = model.observe(data["obs"], data["prev_action"], data["is_first"], deterministic=True)
-    return model.features(post.flatten_batch()).double().numpy()
+    return post
 
 
-def state_probe(model: WorldModel, data: dict[str, th.Tensor]) -> Callable[[np.ndarray], np.ndarray]:
-    """:func:`~benchmarks.control_failures.fit_state_probe` from the posterior features of ``data`` to its states."""
-    return fit_state_probe(posterior_features(model, data), data["state"].reshape(-1, len(OBS_NAMES)).numpy())
-
-
-def probe_r2(model: WorldModel, probe: Callable[[np.ndarray], np.ndarray], data: dict[str, th.Tensor]) -> np.ndarray:
-    """The share of each state entry's variance over ``data`` that ``probe`` explains from its posterior, (5,)."""
-    states = data["state"].reshape(-1, len(OBS_NAMES)).numpy()
-    error = probe(posterior_features(model, data)) - states
-    return 1.0 - (error**2).mean(0) / np.maximum(states.var(0), 1e-24)
+def states_of(data: dict[str, th.Tensor]) -> np.ndarray:
+    """The simulator states of every step of ``data``, (E * T, 5)."""
+    return data["state"].reshape(-1, len(OBS_NAMES)).double().numpy()
 
 
 def one_step_effect(copies: Sequence[tuple[int, int, Any]]) -> np.ndarray:
@@ -275,18 +269,18 @@ def one_step_effect(copies: Sequence[tuple[int, int, Any]]) -> np.ndarray:
 
 @th.no_grad()
 def state_resolution(
-    model: WorldModel, data: dict[str, th.Tensor], effect: np.ndarray, readout: Readout
+    post: LatentState, data: dict[str, th.Tensor], effect: np.ndarray, readout: Readout
 ) -> dict[str, float]:
     """How precisely the posterior state holds the simulator state, against what one action changes in one step.
 
+    :param post: the posterior modes of ``data`` (:func:`posterior`)
     :param data: episodes whose states are read out from their posterior modes
     :param effect: (5,) :func:`one_step_effect`
     :param readout: the decoder (proprioception) or a state probe fitted on ``data`` (pixels)
     :return: ``{entry}_recon_rmse``, ``{entry}_step_effect`` and their ratio ``{entry}_resolution`` per state
         entry; ``{entry}_recon_rmse_upright`` and ``{entry}_std_upright`` over the upright states (NaN if none)
     """
-    post, _ = model.observe(data["obs"], data["prev_action"], data["is_first"], deterministic=True)
-    states = data["state"].double().reshape(-1, len(OBS_NAMES))  # (E * T, 5)
+    states = th.as_tensor(states_of(data))  # (E * T, 5)
     error = th.as_tensor(readout(post.flatten_batch())).double() - states
     rmse = error.pow(2).mean(0).sqrt().numpy()
     upright = (states[:, OBS_NAMES.index("pole_cos")] > UPRIGHT_COS) & (
@@ -307,18 +301,18 @@ def state_resolution(
 @th.no_grad()
 def action_response(
     model: WorldModel,
-    data: dict[str, th.Tensor],
+    post: LatentState,
     copies: Sequence[tuple[int, int, Any]],
     samples: int,
     readout: Readout,
 ) -> dict[str, float]:
     """Slopes and correlations of the model's +1 / -1 differences against the environment's.
 
+    :param post: the posterior modes of the episodes of ``copies`` (:func:`posterior`)
     :param samples: 0 for prior modes, else the mean of that many sampled rollouts
     :param readout: the simulator state of the model's states (the decoder, or a state probe from pixels)
     :return: ``{name}_slope`` and ``{name}_corr`` for every state entry and the reward
     """
-    post, _ = model.observe(data["obs"], data["prev_action"], data["is_first"], deterministic=True)
     rollouts = max(1, samples)
     real_obs, model_obs, real_rew, model_rew = [], [], [], []
     for episode, step, env in copies:
@@ -364,7 +358,8 @@ def measure(
     """Every figure of a trained model (see the module docstring); the decoder reads the state from
     proprioception, the state probe from pixels."""
     model.eval()
-    probe = state_probe(model, data)
+    post, held_out_post = posterior(model, data), posterior(model, held_out)
+    probe = fit_state_probe(model.features(post.flatten_batch()).double().numpy(), states_of(data))
     if data["obs"].dim() == 3:  # vector observations: the simulator state itself, decoded
 
         def readout(state: LatentState) -> np.ndarray:
@@ -377,12 +372,13 @@ def measure(
     figures = {}
     for mode, samples in (("mode", 0), ("sampled", 32)):
         figures.update(
-            {f"{mode}_{k}": v for k, v in action_response(model, held_out, copies, samples, readout).items()}
+            {f"{mode}_{k}": v for k, v in action_response(model, held_out_post, copies, samples, readout).items()}
         )
-    figures.update(state_resolution(model, data, effect, readout))
-    figures.update(
-        {f"{name}_probe_r2": float(v) for name, v in zip(OBS_NAMES, probe_r2(model, probe, held_out), strict=True)}
+    figures.update(state_resolution(post, data, effect, readout))
+    held_out_r2 = r2_per_entry(
+        probe(model.features(held_out_post.flatten_batch()).double().numpy()), states_of(held_out)
     )
+    figures.update({f"{name}_probe_r2": float(v) for name, v in zip(OBS_NAMES, held_out_r2, strict=True)})
     model.train()
     return figures
 
@@ -403,7 +399,8 @@ def run(
     (:data:`~benchmarks.control_failures.CARTPOLE_OUT_OF_VIEW`)."""
     results: dict[str, float] = {}
     held_out, copies = collect(["smooth", "small", "uniform"], seed=99, branch=True, suite=suite)
-    results["held_out/cart_out_of_view"] = cart_out_of_view(held_out)
+    cart = OBS_NAMES.index("cart_position")
+    results["held_out/cart_out_of_view"] = cart_out_of_view(held_out["state"][..., cart].numpy())
     effect = one_step_effect(copies)
     for seed in seeds:
         policies = ["uniform"] + [data_kind.replace("-", "_")] * (episodes - 1)
@@ -411,10 +408,11 @@ def run(
         returns = data["reward"][1:].sum(1)  # the episodes of the data policy (the first is uniformly random)
         mean_return = float(returns.mean()) if len(returns) else float("nan")
         results[f"data/{seed}/return_mean"] = mean_return
-        results[f"data/{seed}/cart_out_of_view"] = cart_out_of_view(data)
+        out_of_view = cart_out_of_view(data["state"][..., cart].numpy())
+        results[f"data/{seed}/cart_out_of_view"] = out_of_view
         print(
             f"seed {seed}: {len(returns)} {data_kind} episodes, return {mean_return:.1f} on average; the cart out of "
-            f"the pixel camera's view in {cart_out_of_view(data):.0%} of the steps",
+            f"the pixel camera's view in {out_of_view:.0%} of the steps",
             flush=True,
         )
         for kind in kinds:

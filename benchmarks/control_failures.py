@@ -260,8 +260,14 @@ def out_of_view_figures(task: str, greedy: Sequence[Episode], sampled: Sequence[
     for name, episodes in (("deterministic", greedy), ("sampled", sampled)):
         cart = np.array([s[0] for e in episodes for s in e.states if s is not None])
         if len(cart):
-            out[f"episodes/cart_out_of_view/{name}"] = float((np.abs(cart) >= CARTPOLE_OUT_OF_VIEW).mean())
+            out[f"episodes/cart_out_of_view/{name}"] = cart_out_of_view(cart)
     return out
+
+
+def cart_out_of_view(cart_positions: np.ndarray) -> float:
+    """The share of DMC cartpole cart positions (any shape) out of the pixel camera's view
+    (:data:`CARTPOLE_OUT_OF_VIEW`)."""
+    return float((np.abs(cart_positions) >= CARTPOLE_OUT_OF_VIEW).mean())
 
 
 def action_figures(model: HIEROS, episodes: Sequence[Episode]) -> dict[str, float]:
@@ -385,6 +391,11 @@ PROBE_PENALTIES = tuple(10.0**k for k in range(-2, 6))
 PROBE_BLOCK = 50
 
 
+def r2_per_entry(predicted: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """The share of each column's variance over ``truth`` (N, S) that ``predicted`` explains, (S,)."""
+    return 1.0 - ((predicted - truth) ** 2).mean(0) / np.maximum(truth.std(0), 1e-12) ** 2
+
+
 def _ridge_path(x: np.ndarray, y: np.ndarray, penalties: Sequence[float]) -> list[np.ndarray]:
     """Ridge coefficients of ``y`` on ``x`` (both centred), (P, S), for each penalty (one SVD for all)."""
     u, s, vt = np.linalg.svd(x, full_matrices=False)
@@ -463,7 +474,7 @@ def state_probe_figures(
         predicted = np.empty_like(states)
         for k in (0, 1):
             predicted[fold == k] = fitted[1 - k](inputs[fold == k])
-        return 1.0 - ((predicted - states) ** 2).mean(0) / spread**2  # (S,)
+        return r2_per_entry(predicted, states)
 
     r2 = out_of_fold_r2(features, probes)
     out = {f"{name}/posterior_r2/s{d}": float(v) for d, v in enumerate(r2)}
