@@ -2,8 +2,8 @@
 
 A screen for world-model changes that :mod:`benchmarks.control_failures` would otherwise need a whole 10k-step agent
 run per seed to show. On DMC cartpole-balance (action repeat 2, :mod:`benchmarks.suites`) from proprioception, or
-with ``--suite dmc_vision`` from 64x64 pixels (about 0.4 s an update on one core, so 2400 updates take about 20
-minutes); the data policies act on the simulator state (:func:`benchmarks.control_failures.physical_state`, the
+with ``--suite dmc_vision`` from 64x64 pixels (2400 updates take about 20 minutes on one core beside another
+run); the data policies act on the simulator state (:func:`benchmarks.control_failures.physical_state`, the
 proprio observation itself) in both:
 
 * **training data**: ``--episodes`` episodes, the first with uniformly random actions, the others with a
