@@ -103,6 +103,10 @@ class WorldModelConfig:
     :param stoch_classes: classes per categorical latent
     :param hidden: width of the prior/posterior/input layers
     :param cnn_depth: channels of the first conv layer (doubled per stage)
+    :param image_shift: random-shift augmentation of image observations in world-model training: each training
+        chunk's frames move together by up to this many pixels (border pixels repeated), as the encoder's input and
+        the decoder's target; 0 (default) trains on the images as they are. Not in the thesis or DreamerV3 (DrQ's
+        augmentation, held over each chunk; see the continuous-control results)
     :param mlp_units: width of the MLP encoder/decoder for vector observations
     :param mlp_layers: depth of the MLP encoder/decoder
     :param head_units: width of the reward and continue heads
@@ -132,6 +136,7 @@ class WorldModelConfig:
     stoch_classes: int = 32
     hidden: int = 256
     cnn_depth: int = 24
+    image_shift: int = 0
     mlp_units: int = 512
     mlp_layers: int = 2
     head_units: int = 256
@@ -177,6 +182,7 @@ class WorldModelConfig:
                 f"WorldModelConfig.s5_state_dim ({self.s5_state_dim}) must be divisible by "
                 f"s5_hippo_blocks ({self.s5_hippo_blocks})"
             )
+        _check_non_negative(self, "image_shift")
         if self.weight_decay < 0 or self.warmup < 0 or self.free_bits < 0:
             raise ValueError(
                 "WorldModelConfig.weight_decay, warmup and free_bits must be >= 0, got "

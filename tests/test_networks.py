@@ -2,6 +2,7 @@ import pytest
 import torch as th
 from torch import nn
 
+from sb3_hieros.nn.augment import random_shift
 from sb3_hieros.nn.networks import (
     MLP,
     ConvDecoder,
@@ -172,3 +173,24 @@ def test_bf16_auto_autocasts_exactly_where_the_device_computes_bf16_natively():
     with bf16_autocast(False, cpu):
         assert (a @ b).dtype == th.float32
     assert native_bf16("meta") is False
+
+
+def test_random_shift_moves_each_sequence_as_one_crop_of_its_padded_frames():
+    th.manual_seed(0)
+    images = th.rand(6, 4, 3, 8, 8)  # (B, T, C, H, W)
+    shifted = random_shift(images, 2)
+    assert shifted.shape == images.shape
+    assert shifted.reshape(-1, 3, 8, 8).is_contiguous(memory_format=th.channels_last)
+    offsets = set()
+    for b in range(6):
+        padded = nn.functional.pad(images[b], (2, 2, 2, 2), mode="replicate")  # (T, C, 12, 12)
+        # one offset for all frames of the sequence
+        found = [(i, j) for i in range(5) for j in range(5) if th.equal(padded[..., i : i + 8, j : j + 8], shifted[b])]
+        assert len(found) == 1, (b, found)
+        offsets.add(found[0])
+    assert len(offsets) > 1  # sequences move independently
+    assert random_shift(images, 0) is images
+    with pytest.raises(ValueError, match="pad must be >= 0, got -1"):
+        random_shift(images, -1)
+    with pytest.raises(ValueError, match=r"\(B, T, C, H, W\) images, got shape \(4, 3, 8, 8\)"):
+        random_shift(images[0], 2)

@@ -22,6 +22,7 @@ from sb3_hieros.agent.world_model import (
     world_model_optimizer,
 )
 from sb3_hieros.config import WorldModelConfig
+from sb3_hieros.nn.augment import random_shift
 from sb3_hieros.spaces import check_observation_space
 
 # the sequence models under test: kind plus the options that change what they compute
@@ -633,3 +634,31 @@ def test_grouped_kl_with_given_probabilities_keeps_value_and_gradients():
     dyn = _grouped_kl(log_p.detach(), log_q, log_p.exp().detach())
     grad_p, grad_q = th.autograd.grad(dyn.sum(), (raw_p, raw_q), allow_unused=True)
     assert grad_p is None and grad_q.abs().sum() > 0
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_image_shift_trains_on_shifted_frames_as_input_and_target(kind):
+    th.manual_seed(0)
+    space = spaces.Box(0, 255, (3, 16, 16), np.uint8)
+    shifting = make_world_model(space, 2, tiny_config(kind, image_shift=3))
+    plain = make_world_model(space, 2, tiny_config(kind))
+    plain.load_state_dict(shifting.state_dict())
+    obs = th.randint(0, 256, (2, 3, 3, 16, 16), dtype=th.uint8)
+    chunk = dict(actions=th.rand(2, 3, 2) * 2 - 1, rewards=th.rand(2, 3), is_terminal=th.zeros(2, 3))
+    chunk["is_first"] = th.tensor([[True, False, False], [True, False, False]])
+    # the same draws: the shift comes first, then the latent samples
+    th.manual_seed(1)
+    shifted_loss, _, _ = shifting.loss(SimpleNamespace(observations=obs, **chunk))
+    th.manual_seed(1)
+    mapped = random_shift(obs.float() / 255.0 - 0.5, 3)  # float images are taken as already mapped
+    assert not th.equal(mapped, obs.float() / 255.0 - 0.5)
+    plain_loss, _, _ = plain.loss(SimpleNamespace(observations=mapped, **chunk))
+    assert th.allclose(shifted_loss, plain_loss, rtol=1e-5)
+    # evaluation sees the frames as they are
+    shifting.eval(), plain.eval()
+    th.manual_seed(2)
+    eval_loss, _, _ = shifting.loss(SimpleNamespace(observations=obs, **chunk))
+    th.manual_seed(2)
+    assert th.allclose(eval_loss, plain.loss(SimpleNamespace(observations=obs, **chunk))[0], rtol=1e-5)
+    with pytest.raises(ValueError, match=r"WorldModelConfig\.image_shift must be a number >= 0, got -1"):
+        tiny_config(kind, image_shift=-1)

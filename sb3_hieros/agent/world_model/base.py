@@ -48,6 +48,7 @@ from sb3_hieros.agent.world_model.observations import (
     make_observation_encoder,
 )
 from sb3_hieros.config import WorldModelConfig
+from sb3_hieros.nn.augment import random_shift
 from sb3_hieros.nn.distributions import (
     ContinueBernoulli,
     OneHotCategoricalST,
@@ -490,6 +491,10 @@ class WorldModel(nn.Module):
     ) -> tuple[th.Tensor, dict[str, th.Tensor], LatentState]:
         # images are converted to x/255 - 0.5 once, for the encoder and as the decoder's target
         obs = self.spec.preprocess(self.spec.as_dict(samples.observations))
+        if self.training and self.config.image_shift:
+            # the encoder and the decoder's target see the same shifted frames
+            shift = self.config.image_shift
+            obs = {k: random_shift(v, shift) if k in self.spec.image_keys else v for k, v in obs.items()}
         post, prior_logits = self._observe(obs, samples.actions, samples.is_first, state, False)
         lead = tuple(post.batch_shape)
         feat = self.features(post)
