@@ -52,6 +52,7 @@ THESIS: dict[str, str] = {
     "world_model.stoch_classes": "4.4, table 4.6.3 (z_t 32x32)",
     "world_model.hidden": "4.4 (value: public code)",
     "world_model.cnn_depth": "4.4 (value: public code)",
+    "world_model.image_shift": "not in the thesis or DreamerV3 (DrQ/RAD random shifts; off)",
     "world_model.mlp_units": "4.4 (value: public code)",
     "world_model.mlp_layers": "4.4 (value: public code)",
     "world_model.head_units": "4.4, table 4.6.3 (MLP units)",
