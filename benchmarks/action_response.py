@@ -243,6 +243,11 @@ def posterior(model: WorldModel, data: dict[str, th.Tensor]) -> LatentState:
     return post
 
 
+def features_of(model: WorldModel, post: LatentState) -> np.ndarray:
+    """The world-state features of every state of ``post``, flattened over its batch, (N, P) float64."""
+    return model.features(post.flatten_batch()).double().numpy()
+
+
 def states_of(data: dict[str, th.Tensor]) -> np.ndarray:
     """The simulator states of every step of ``data``, (E * T, 5)."""
     return data["state"].reshape(-1, len(OBS_NAMES)).double().numpy()
@@ -359,7 +364,7 @@ def measure(
     proprioception, the state probe from pixels."""
     model.eval()
     post, held_out_post = posterior(model, data), posterior(model, held_out)
-    probe = fit_state_probe(model.features(post.flatten_batch()).double().numpy(), states_of(data))
+    probe = fit_state_probe(features_of(model, post), states_of(data))
     if data["obs"].dim() == 3:  # vector observations: the simulator state itself, decoded
 
         def readout(state: LatentState) -> np.ndarray:
@@ -375,9 +380,7 @@ def measure(
             {f"{mode}_{k}": v for k, v in action_response(model, held_out_post, copies, samples, readout).items()}
         )
     figures.update(state_resolution(post, data, effect, readout))
-    held_out_r2 = r2_per_entry(
-        probe(model.features(held_out_post.flatten_batch()).double().numpy()), states_of(held_out)
-    )
+    held_out_r2 = r2_per_entry(probe(features_of(model, held_out_post)), states_of(held_out))
     figures.update({f"{name}_probe_r2": float(v) for name, v in zip(OBS_NAMES, held_out_r2, strict=True)})
     model.train()
     return figures
