@@ -53,6 +53,13 @@ POSTERIOR_STATE_WM4_H32_KWARGS = (
 )
 
 
+#: The HIEROS keywords of the RSSM setting with DreamerV3 XS's latent sizes (deter and hidden 256, 32 x 32 classes).
+RSSM_XS_LATENT_WM4_KWARGS = (
+    '{"config_overrides": {"world_model": {"kind": "rssm", "deter_dim": 256, "hidden": 256, "stoch_groups": 32, '
+    '"stoch_classes": 32}, "world_model_updates": 4}, "policy_kwargs": {"bf16": false}}'
+)
+
+
 #: The single-change suites next to the main one: folder under docs/cpu_suite -> arguments of their --report
 #: (three seeds unless the arguments name --seeds).
 CHANGE_SUITES = {
@@ -204,6 +211,11 @@ CHANGE_SUITES = {
         "--hieros-kwargs",
         '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 4}, '
         '"policy_kwargs": {"bf16": true}}',
+    ],
+    "rssm_xs_latent_world_model_updates_4": [
+        "--tasks", "cartpole-balance-proprio", "cartpole-balance-pixels",
+        "--hieros-kwargs",
+        RSSM_XS_LATENT_WM4_KWARGS,
     ],
 }  # fmt: skip
 
