@@ -217,6 +217,12 @@ CHANGE_SUITES = {
         "--hieros-kwargs",
         RSSM_XS_LATENT_WM4_KWARGS,
     ],
+    "rssm_deter_256_world_model_updates_4": [
+        "--tasks", "cartpole-balance-proprio", "cartpole-balance-pixels",
+        "--hieros-kwargs",
+        '{"config_overrides": {"world_model": {"kind": "rssm", "deter_dim": 256, "hidden": 256}, '
+        '"world_model_updates": 4}, "policy_kwargs": {"bf16": false}}',
+    ],
 }  # fmt: skip
 
 
