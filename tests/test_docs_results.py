@@ -60,6 +60,13 @@ RSSM_XS_LATENT_WM4_KWARGS = (
 )
 
 
+#: The same with the imagination horizon of 32.
+RSSM_XS_LATENT_WM4_H32_KWARGS = (
+    '{"config_overrides": {"world_model": {"kind": "rssm", "deter_dim": 256, "hidden": 256, "stoch_groups": 32, '
+    '"stoch_classes": 32}, "world_model_updates": 4, "imag_horizon": 32}, "policy_kwargs": {"bf16": false}}'
+)
+
+
 #: The single-change suites next to the main one: folder under docs/cpu_suite -> arguments of their --report
 #: (three seeds unless the arguments name --seeds).
 CHANGE_SUITES = {
@@ -216,6 +223,11 @@ CHANGE_SUITES = {
         "--tasks", "cartpole-balance-proprio", "cartpole-balance-pixels",
         "--hieros-kwargs",
         RSSM_XS_LATENT_WM4_KWARGS,
+    ],
+    "rssm_xs_latent_world_model_updates_4_imag_horizon_32": [
+        "--tasks", "cartpole-balance-proprio",
+        "--hieros-kwargs",
+        RSSM_XS_LATENT_WM4_H32_KWARGS,
     ],
     "rssm_deter_256_world_model_updates_4": [
         "--tasks", "cartpole-balance-proprio", "cartpole-balance-pixels",
