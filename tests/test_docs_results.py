@@ -229,6 +229,12 @@ CHANGE_SUITES = {
         "--hieros-kwargs",
         RSSM_XS_LATENT_WM4_H32_KWARGS,
     ],
+    "rssm_stoch_32_world_model_updates_4": [
+        "--tasks", "cartpole-balance-pixels",
+        "--hieros-kwargs",
+        '{"config_overrides": {"world_model": {"kind": "rssm", "stoch_groups": 32, "stoch_classes": 32}, '
+        '"world_model_updates": 4}, "policy_kwargs": {"bf16": false}}',
+    ],
     "rssm_deter_256_world_model_updates_4": [
         "--tasks", "cartpole-balance-proprio", "cartpole-balance-pixels",
         "--hieros-kwargs",
