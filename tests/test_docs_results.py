@@ -224,6 +224,11 @@ CHANGE_SUITES = {
         "--hieros-kwargs",
         RSSM_XS_LATENT_WM4_KWARGS,
     ],
+    "rssm_xs_latent_world_model_updates_4_five_seeds": [
+        "--tasks", "cartpole-balance-pixels", "--seeds", "5",
+        "--hieros-kwargs",
+        RSSM_XS_LATENT_WM4_KWARGS,
+    ],
     "rssm_xs_latent_world_model_updates_4_imag_horizon_32": [
         "--tasks", "cartpole-balance-proprio",
         "--hieros-kwargs",
