@@ -86,6 +86,7 @@ __all__ = [
     "run_suite_run",
     "suite_runs",
     "table",
+    "task_vec_env",
     "zoo_hyperparams",
 ]
 
@@ -193,7 +194,9 @@ def zoo_hyperparams(algo: str, key: str) -> tuple[int, dict[str, Any]]:
     return n_envs, entry
 
 
-def _vec_env(spec: TaskSpec, n_envs: int, seed: int) -> Any:
+def task_vec_env(spec: TaskSpec, n_envs: int, seed: int) -> Any:
+    """The training env of a task: ``n_envs`` monitored envs of :func:`benchmarks.suites.make_env` (seeds ``seed``,
+    ``seed + 1``, ...) in a ``DummyVecEnv``, image observations channel-first."""
     from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
     from stable_baselines3.common.vec_env import DummyVecEnv, VecTransposeImage
@@ -256,8 +259,8 @@ def run_suite_run(
         n_envs, kwargs = zoo_hyperparams(run.algo, spec.zoo_key)
         if run.algo == "sac":
             kwargs["buffer_size"] = min(int(kwargs.get("buffer_size", 1_000_000)), run.steps)
-    env = _vec_env(spec, n_envs, run.seed)
-    eval_env = _vec_env(spec, 1, run.seed + EVAL_SEED_OFFSET)
+    env = task_vec_env(spec, n_envs, run.seed)
+    eval_env = task_vec_env(spec, 1, run.seed + EVAL_SEED_OFFSET)
     algo_class: Any = {"hieros": HIEROS, "ppo": PPO, "dqn": DQN, "sac": SAC}[run.algo]
     checkpointing = run.algo == "hieros" and checkpoint_dir is not None and checkpoint_freq > 0
     saved = None

@@ -365,6 +365,11 @@ class HierosConfig:
         own, so the world model learns ``world_model_updates`` times as much replay per actor-critic update
     :param buffer_size: replay capacity of level 0 in steps (higher levels get ``buffer_size // k**i``)
     :param learning_starts: environment steps of random actions before training starts
+    :param actor_learning_starts: environment steps before the actors and critics start learning and acting; 0
+        (default, thesis): at ``learning_starts`` with the world models. Above ``learning_starts`` only the world
+        models learn in between, and every level keeps acting uniformly at random as in the warm-up, so the actors
+        start from world models that have learnt what the actions do (an actor that learns from a world model of a
+        few hundred updates settles on one action for every state: ``docs/results/control.md``)
     :param etbs_temperature: tau of ETBS (thesis 4.5, eq. 4.21)
     :param replay: ``"etbs"`` (default), ``"uniform"``, ``"reference"`` or ``"count"`` (ablation 5.3.3)
     :param replay_context: False (default, thesis and reference code): every sampled chunk starts the world model
@@ -402,6 +407,7 @@ class HierosConfig:
     world_model_updates: int = 1
     buffer_size: int = 1_000_000
     learning_starts: int = 1024
+    actor_learning_starts: int = 0
     etbs_temperature: float = 0.3
     replay: str = "etbs"
     replay_context: bool = False
@@ -421,8 +427,7 @@ class HierosConfig:
         fraction = self.imag_start_fraction
         if not isinstance(fraction, int | float) or isinstance(fraction, bool) or not 0.0 < fraction <= 1.0:
             raise ValueError(f"HierosConfig.imag_start_fraction must be in (0, 1], got {self.imag_start_fraction!r}")
-        if self.learning_starts < 0:
-            raise ValueError(f"HierosConfig.learning_starts must be >= 0, got {self.learning_starts!r}")
+        _check_non_negative(self, "learning_starts", "actor_learning_starts")
         _check_fraction(self, "etbs_temperature")
         _check_choice(self, "replay", ("etbs", "uniform", "reference", "count"))
         _check_choice(self, "higher_level_input", HIGHER_LEVEL_INPUTS)

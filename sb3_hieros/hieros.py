@@ -21,7 +21,9 @@ Training schedule: ``train_ratio`` is DreamerV3's replayed steps per environment
 level i >= 1 trains at every ``k**i``-th level-0 update once its buffer can sample; each of these updates is preceded
 by ``world_model_updates - 1`` world-model updates of the level on batches of their own. No update happens before
 ``learning_starts`` steps (uniformly random actions at every level until then, while the hierarchy still encodes every
-observation) or while level 0's buffer cannot sample a chunk (e.g. right after ``load``).
+observation) or while level 0's buffer cannot sample a chunk (e.g. right after ``load``). With
+``actor_learning_starts`` above ``learning_starts``, the updates in between train the world models alone (each of
+them ``world_model_updates`` times) and every level goes on acting at random until ``actor_learning_starts``.
 
 Logging: SB3's ``rollout/*``, ``time/*``, ``train/learning_rate``, ``train/n_updates``, and
 ``train/level{i}/<metric>`` for every metric of :meth:`Subactor.train_step` (mean over the updates since the last
@@ -343,8 +345,9 @@ class HIEROS(OffPolicyAlgorithm):
         """One step of the hierarchy on ``self._last_obs`` (Algorithm 1) with exploration, and the rows of the levels
         above 0 that updated.
 
-        Before ``learning_starts`` every level takes uniformly random actions, but every observation is still
-        encoded so that the latent states and histories stay consistent. Afterwards the actors sample.
+        Before ``learning_starts`` (or ``actor_learning_starts``, the later of the two) every level takes uniformly
+        random actions, but every observation is still encoded so that the latent states and histories stay
+        consistent. Afterwards the actors sample.
 
         :param learning_starts: steps of random warm-up
         :param action_noise: unsupported (must be None)
@@ -353,11 +356,12 @@ class HIEROS(OffPolicyAlgorithm):
         """
         if action_noise is not None:
             raise ValueError("HIEROS explores with its stochastic actors; action_noise must be None")
-        assert self._hier is not None and self._rows is not None
+        assert self._hier is not None and self._rows is not None and self.config is not None
         policy, hierarchy = self.policy, self.policy.hierarchy
         obs, _ = policy.obs_to_tensor(self._last_obs)  # type: ignore[arg-type]
         is_first = np.asarray(self._last_episode_starts, dtype=bool)
-        random_actions = policy.random_action_vectors(n_envs) if self.num_timesteps < learning_starts else None
+        acting = max(learning_starts, self.config.actor_learning_starts)
+        random_actions = policy.random_action_vectors(n_envs) if self.num_timesteps < acting else None
         self._hier, step = hierarchy.step(self._hier, obs, th.as_tensor(is_first), False, random_actions)
         buffers = self.level_buffers()
         for rows in hierarchy.update_rows(self._hier, step):
@@ -489,7 +493,10 @@ class HIEROS(OffPolicyAlgorithm):
                 batches = self._sample_batches(due, batch_size, lr)
                 self._apply_updates(batches, hierarchy.world_model_updates(batches), count=False)
             batches = self._sample_batches(due, batch_size, lr)
-            self._apply_updates(batches, hierarchy.train_step(batches), count=True)
+            if self.num_timesteps < cfg.actor_learning_starts:  # the world models alone until the actors start
+                self._apply_updates(batches, hierarchy.world_model_updates(batches), count=True)
+            else:
+                self._apply_updates(batches, hierarchy.train_step(batches), count=True)
             self._n_updates += 1
         self.policy.set_training_mode(False)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")

@@ -79,6 +79,17 @@ def test_hieros_config_rejects_bad_world_model_updates():
     assert HierosConfig(world_model_updates=4).world_model_updates == 4
 
 
+def test_learning_starts_are_checked():
+    assert HierosConfig().actor_learning_starts == 0 and get_preset("small").actor_learning_starts == 0
+    assert HierosConfig(actor_learning_starts=3000).actor_learning_starts == 3000
+    with pytest.raises(ValueError, match=r"HierosConfig\.learning_starts must be a number >= 0, got -1"):
+        HierosConfig(learning_starts=-1)
+    with pytest.raises(ValueError, match=r"HierosConfig\.actor_learning_starts must be a number >= 0, got -5"):
+        HierosConfig(actor_learning_starts=-5)
+    with pytest.raises(ValueError, match=r"HierosConfig\.actor_learning_starts must be an integer, got 2000\.0"):
+        HierosConfig(actor_learning_starts=2000.0)
+
+
 def test_replay_value_loss_is_checked():
     small = get_preset("small")
     assert small.actor_critic.replay_value_loss == 0.0

@@ -105,6 +105,32 @@ def test_update_budget_carries_fractions_of_updates():
     assert model.level_updates()[0] == done + int(before + 0.75)
 
 
+def test_actors_start_learning_and_acting_at_actor_learning_starts(monkeypatch):
+    overrides = {**TINY_OVERRIDES, "world_model_updates": 2, "actor_learning_starts": 60}
+    model = HIEROS("MlpPolicy", "Pendulum-v1", **tiny_kwargs(config_overrides=overrides, learning_starts=20))
+    level0 = model.policy.hierarchy.levels[0]
+    random_steps = []
+    draw = model.policy.random_action_vectors
+    monkeypatch.setattr(model.policy, "random_action_vectors", lambda n: random_steps.append(n) or draw(n))
+
+    def snapshot(module):
+        return [p.detach().clone() for p in module.parameters()]
+
+    def changed(module, before):
+        return any(not th.equal(p, b) for p, b in zip(module.parameters(), before, strict=True))
+
+    actor, critics, world_model = (
+        snapshot(m) for m in (level0.actor_critic.actor, level0.actor_critic, level0.world_model)
+    )
+    model.learn(50)
+    assert len(random_steps) == 50, "every level acts at random until actor_learning_starts"
+    assert model.level_updates()[0] > 0 and changed(level0.world_model, world_model)
+    assert not changed(level0.actor_critic.actor, actor) and not changed(level0.actor_critic, critics)
+    model.learn(30, reset_num_timesteps=False)
+    assert len(random_steps) == 60
+    assert changed(level0.actor_critic.actor, actor)
+
+
 @pytest.mark.parametrize("hierarchical", [True, False])
 def test_world_model_updates_train_world_models_on_batches_of_their_own(hierarchical, monkeypatch):
     overrides = {**TINY_OVERRIDES, "world_model_updates": 3, "hierarchical_world_models": hierarchical}
