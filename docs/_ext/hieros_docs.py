@@ -30,6 +30,7 @@ THESIS: dict[str, str] = {
     "world_model_updates": "Algorithm 2 (1 as in the thesis)",
     "buffer_size": "4.6 (value: public code)",
     "learning_starts": "4.6 (value: public code)",
+    "actor_learning_starts": "not in the thesis (0: the actors start with the world models)",
     "etbs_temperature": "eq. 4.21, table 4.6.3",
     "replay": "4.5; ablation 5.3.3",
     "replay_context": "not in the thesis (DreamerV3's replay context)",
