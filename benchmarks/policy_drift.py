@@ -1,9 +1,8 @@
 """How the level-0 policy of a Box task moves while HIEROS learns: its action statistics per window of agent steps.
 
-:mod:`benchmarks.control_failures` looks at saved models; this script watches one training run of
-:mod:`benchmarks.cpu_suite` (the same task names, env, ``preset="small"`` plus ``--hieros-kwargs`` and seed, so its
-steps are those of the suite's run of that seed until the suite's first evaluation) and reports, for every
-``--window`` agent steps:
+:mod:`benchmarks.control_failures` looks at saved models; this script watches one training run as
+:mod:`benchmarks.cpu_suite` makes it (the same task names, env, ``preset="small"`` plus ``--hieros-kwargs`` and seed,
+without the suite's evaluations) and reports, for every ``--window`` agent steps:
 
 * ``taken_at_bounds``: the share of the actions taken (the buffer's action, in [-1, 1]) with ``|a| > 0.95``
   (:data:`AT_BOUNDS`); uniformly random actions, as in the warm-up, give 0.05;
