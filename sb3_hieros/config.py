@@ -368,8 +368,8 @@ class HierosConfig:
     :param actor_learning_starts: environment steps before the actors and critics start learning and acting; 0
         (default, thesis): at ``learning_starts`` with the world models. Above ``learning_starts`` only the world
         models learn in between, and every level keeps acting uniformly at random as in the warm-up, so the actors
-        start from world models that have learnt what the actions do (an actor that learns from a world model of a
-        few hundred updates settles on one action for every state: ``docs/results/control.md``)
+        start from world models that have learnt for longer (an actor that learns from a world model of a few
+        hundred updates settles on one push for every state: ``docs/results/control.md``)
     :param etbs_temperature: tau of ETBS (thesis 4.5, eq. 4.21)
     :param replay: ``"etbs"`` (default), ``"uniform"``, ``"reference"`` or ``"count"`` (ablation 5.3.3)
     :param replay_context: False (default, thesis and reference code): every sampled chunk starts the world model
