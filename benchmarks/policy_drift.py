@@ -179,15 +179,15 @@ def run_drift(
     """
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r}; expected one of {sorted(TASKS)}")
+    spec = TASKS[task]
+    drift = PolicyDrift(window, cartpole=spec.suite.startswith("dmc") and spec.task.startswith("cartpole-"))
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < window:
         raise ValueError(f"steps must be an int >= window ({window}), got {steps!r}")
-    spec = TASKS[task]
     env = task_vec_env(spec, 1, seed)
     if not isinstance(env.action_space, spaces.Box):
         env.close()
         raise ValueError(f"task {task!r} has {env.action_space} actions; policy_drift needs Box actions")
     model = HIEROS(SUITE_POLICIES[spec.suite], env, seed=seed, **{"preset": "small", **(hieros_kwargs or {})})
-    drift = PolicyDrift(window, cartpole=spec.suite.startswith("dmc") and spec.task.startswith("cartpole-"))
     model.learn(steps, callback=drift)
     env.close()
     return drift.rows
@@ -206,8 +206,6 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, float]]:
     parser.add_argument("--hieros-kwargs", type=json_object, default={}, help="JSON dict of HIEROS keywords")
     parser.add_argument("--out", default=None, help="JSON file for the rows")
     args = parser.parse_args(argv)
-    if args.window < 1:
-        raise ValueError(f"--window must be >= 1, got {args.window}")
     print(environment_header())
     th.set_num_threads(1)
     rows = run_drift(args.task, args.seed, args.steps, args.window, args.hieros_kwargs)

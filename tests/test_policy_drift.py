@@ -100,6 +100,8 @@ def test_cart_positions_come_from_the_simulator(monkeypatch):
 def test_checks():
     with pytest.raises(ValueError, match="window must be an int >= 1, got 0"):
         policy_drift.PolicyDrift(0)
+    with pytest.raises(ValueError, match="window must be an int >= 1, got 0"):
+        policy_drift.main(["--task", "Pendulum-v1", "--window", "0"])
     with pytest.raises(ValueError, match="'CartPole-v1' has Discrete\\(2\\) actions; policy_drift needs Box actions"):
         policy_drift.run_drift("CartPole-v1", 0, 20, 10)
     with pytest.raises(ValueError, match="unknown task 'Pendulum'"):
