@@ -9,6 +9,10 @@ without the suite's evaluations) and reports, for every ``--window`` agent steps
 * ``mode_mean``, ``mode_abs``, ``mode_at_bounds``: the mean, mean absolute value and share at the bounds of the
   deterministic action (the policy's mode) in the states the agent acted in, and ``std``, the policy's mean
   standard deviation there, also during the warm-up, where the untrained policy is computed but not followed;
+* ``mode_spread`` and ``mode_state_r2``: how the mode depends on the state within the window: its standard deviation
+  over the window's states, and the share of its variance that a linear fit on the simulator's state explains
+  (:func:`benchmarks.control_failures.physical_state`, read before each action; tasks that expose it). A constant
+  push has no spread; a controller that reacts to the state has spread and, where it is near linear, a high R^2;
 * ``reward``: the mean reward per agent step;
 * ``cart_out_of_view`` (DMC cartpole tasks): the share of steps whose cart is out of the pixel camera's view
   (:data:`benchmarks.control_failures.CARTPOLE_OUT_OF_VIEW`), from the simulator state;
@@ -38,7 +42,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from benchmarks._cli import json_object
 from benchmarks._timing import environment_header
-from benchmarks.control_failures import _level_goal, cart_out_of_view, physical_state
+from benchmarks.control_failures import _level_goal, _linear_fit, cart_out_of_view, physical_state
 from benchmarks.cpu_suite import TASKS, task_vec_env
 from benchmarks.suites import SUITE_POLICIES
 from sb3_hieros import HIEROS
@@ -50,13 +54,15 @@ __all__ = ["AT_BOUNDS", "FIGURES", "PolicyDrift", "main", "run_drift", "window_f
 #: An action entry in [-1, 1] whose absolute value exceeds this is counted as at the bounds.
 AT_BOUNDS = 0.95
 #: The figures of a window, in the order of the printed table (``cart_out_of_view`` and ``actor_grad_norm`` only
-#: where they apply).
+#: where they apply, ``mode_state_r2`` where the task exposes its state).
 FIGURES = (
     "warmup",
     "taken_at_bounds",
     "mode_mean",
     "mode_abs",
     "mode_at_bounds",
+    "mode_spread",
+    "mode_state_r2",
     "std",
     "reward",
     "cart_out_of_view",
@@ -71,6 +77,7 @@ def window_figures(
     rewards: np.ndarray,
     warmup: np.ndarray,
     cart_positions: np.ndarray | None = None,
+    states: np.ndarray | None = None,
 ) -> dict[str, float]:
     """The figures of one window of steps (see the module's docstring).
 
@@ -80,6 +87,7 @@ def window_figures(
     :param rewards: (N,) rewards received
     :param warmup: (N,) True for steps with uniformly random actions
     :param cart_positions: (N,) cart positions on DMC cartpole tasks, else None
+    :param states: (N, S) the simulator's state each action was chosen in, where the task exposes it, else None
     :return: figure name -> value
     """
     figures = {
@@ -88,9 +96,12 @@ def window_figures(
         "mode_mean": float(np.mean(mode)),
         "mode_abs": float(np.mean(np.abs(mode))),
         "mode_at_bounds": float(np.mean(np.abs(mode) > AT_BOUNDS)),
+        "mode_spread": float(np.mean(np.std(mode, axis=0))),
         "std": float(np.mean(std)),
         "reward": float(np.mean(rewards)),
     }
+    if states is not None:
+        figures["mode_state_r2"] = _linear_fit(states, mode)[1]
     if cart_positions is not None:
         figures["cart_out_of_view"] = cart_out_of_view(cart_positions)
     return figures
@@ -101,8 +112,12 @@ class PolicyDrift(BaseCallback):
     state it was taken in, and summarises every ``window`` steps into :attr:`rows` (:func:`window_figures` plus the
     step, the model's ``num_timesteps`` at the window's end).
 
+    The simulator's state is read once per step, after it (:func:`benchmarks.control_failures.physical_state`): the
+    env resets at an episode's end, so that read is the state the next action is chosen in, and the cart's position
+    in it is the one the step reached (or the reset's, at an episode's end).
+
     :param window: agent steps per row
-    :param cartpole: read the cart position from the simulator (DMC cartpole tasks)
+    :param cartpole: count the steps with the cart out of the camera's view (DMC cartpole tasks)
     """
 
     def __init__(self, window: int, cartpole: bool = False) -> None:
@@ -113,6 +128,7 @@ class PolicyDrift(BaseCallback):
         self.cartpole = cartpole
         self.rows: list[dict[str, float]] = []
         self._steps: dict[str, list[Any]] = {}
+        self._state: np.ndarray | None = None  # the simulator's state the next action is chosen in
 
     def _init_callback(self) -> None:
         model = self.model
@@ -124,8 +140,11 @@ class PolicyDrift(BaseCallback):
             raise ValueError(f"PolicyDrift watches one env, got n_envs={model.n_envs}")
         self._clear()
 
+    def _on_training_start(self) -> None:
+        self._state = physical_state(self.training_env.envs[0])
+
     def _clear(self) -> None:
-        self._steps = {name: [] for name in ("taken", "mode", "std", "rewards", "warmup", "cart")}
+        self._steps = {name: [] for name in ("taken", "mode", "std", "rewards", "warmup", "cart", "states")}
 
     @th.no_grad()
     def _on_step(self) -> bool:
@@ -142,8 +161,11 @@ class PolicyDrift(BaseCallback):
         steps["rewards"].append(float(np.asarray(self.locals["rewards"])[0]))
         # num_timesteps counts this step already; its action was random if it was taken before the actors started
         steps["warmup"].append(self.num_timesteps - 1 < max(model.learning_starts, model.config.actor_learning_starts))
+        if self._state is not None:
+            steps["states"].append(self._state)
+        self._state = physical_state(self.training_env.envs[0])
         if self.cartpole:
-            steps["cart"].append(float(physical_state(self.training_env.envs[0])[0]))
+            steps["cart"].append(float(self._state[0]))
         if self.num_timesteps % self.window == 0:
             row = {"step": float(self.num_timesteps)}
             row.update(
@@ -154,6 +176,7 @@ class PolicyDrift(BaseCallback):
                     np.asarray(steps["rewards"]),
                     np.asarray(steps["warmup"]),
                     np.asarray(steps["cart"]) if self.cartpole else None,
+                    np.stack(steps["states"]) if len(steps["states"]) == len(steps["mode"]) else None,
                 )
             )
             logged = model.logger.name_to_value.get("train/level0/actor/grad_norm")

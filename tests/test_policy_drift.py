@@ -34,12 +34,25 @@ def test_window_figures():
             "mode_mean": 0.44,
             "mode_abs": 0.64,
             "mode_at_bounds": 0.5,
+            "mode_spread": np.std([0.99, 0.2, -0.4, 0.97]),
             "std": 0.3,
             "reward": 0.5,
             "cart_out_of_view": 0.5,
         }
     )
     assert "cart_out_of_view" not in policy_drift.window_figures(taken, mode, std, np.zeros(4), np.zeros(4, bool))
+    assert "mode_state_r2" not in figures
+
+
+def test_mode_state_r2_tells_a_controller_from_a_push():
+    states = np.array([[0.1, 1.0], [-0.3, 0.5], [0.2, -1.0], [0.0, 0.3], [0.4, 0.0]])  # (N, S)
+    controller = 2.0 * states[:, :1] - 0.1  # a linear state feedback, within the bounds here
+    push = np.ones((5, 1))
+    zeros, no = np.zeros((5, 1)), np.zeros(5, bool)
+    reacts = policy_drift.window_figures(zeros, controller, zeros + 0.2, np.zeros(5), no, None, states)
+    assert reacts["mode_state_r2"] == pytest.approx(1.0) and reacts["mode_spread"] > 0.4
+    pushes = policy_drift.window_figures(zeros, push, zeros + 0.2, np.zeros(5), no, None, states)
+    assert np.isnan(pushes["mode_state_r2"]) and pushes["mode_spread"] == 0.0
 
 
 def _pinned_actor(model: HIEROS, mean_raw: float, std_raw: float) -> None:
@@ -63,6 +76,7 @@ def test_rows_read_the_policy_in_force_and_the_actions_taken():
     assert [row["warmup"] for row in rows] == [1.0, 1.0, 0.0]
     for row in rows:  # the policy is read in the warm-up too, where it is not followed
         assert row["mode_at_bounds"] == 1.0 and row["mode_mean"] > 0.99
+        assert row["mode_spread"] == 0.0 and np.isnan(row["mode_state_r2"])  # the same push in every state
         assert row["std"] == pytest.approx(0.1, abs=0.01)
         assert "cart_out_of_view" not in row
     # uniformly random actions reach |a| > 0.95 one time in twenty; samples of N(1, 0.1) clipped to 1, two in three
@@ -88,12 +102,23 @@ def test_cart_positions_come_from_the_simulator(monkeypatch):
     drift = policy_drift.PolicyDrift(10, cartpole=True)
     model.learn(10, callback=drift)
     assert drift.rows[0]["cart_out_of_view"] == 0.0  # the cart starts near the centre and stays there for 10 steps
-    read = []
-    monkeypatch.setattr(
-        policy_drift, "physical_state", lambda env: read.append(env.unwrapped.physics) or np.array([-1.8, 1.0])
-    )
+    read, passed = [], []
+
+    def state(env):  # the cart out of view; the second entry counts the reads
+        read.append(env.unwrapped.physics)
+        return np.array([-1.8, float(len(read))])
+
+    def figures(*args):
+        passed.append(args)
+        return window_figures(*args)
+
+    window_figures = policy_drift.window_figures
+    monkeypatch.setattr(policy_drift, "physical_state", state)
+    monkeypatch.setattr(policy_drift, "window_figures", figures)
     model.learn(10, callback=drift, reset_num_timesteps=False)
-    assert drift.rows[1]["cart_out_of_view"] == 1.0 and len(read) == 10
+    assert drift.rows[1]["cart_out_of_view"] == 1.0 and len(read) == 11  # once before the first action, once a step
+    states = passed[0][-1]  # the state each action was chosen in: the read before it
+    assert states[:, 1].tolist() == list(range(1, 11))
     env.close()
 
 
