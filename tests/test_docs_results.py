@@ -39,6 +39,12 @@ RSSM_WM4_H32_KWARGS = (
     '"policy_kwargs": {"bf16": false}}'
 )
 
+#: The RSSM setting whose actors and critics start at 2000 steps (the world models at the preset's 500).
+RSSM_WM4_ALS2000_KWARGS = (
+    '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 4, "actor_learning_starts": 2000}, '
+    '"policy_kwargs": {"bf16": false}}'
+)
+
 #: The HIEROS keywords of the S5 world model with the posterior that reads h_t: four updates, float32.
 POSTERIOR_STATE_WM4_KWARGS = (
     '{"config_overrides": {"world_model": {"posterior": "state"}, "world_model_updates": 4}, '
@@ -206,6 +212,11 @@ CHANGE_SUITES = {
         "--tasks", "cartpole-balance-proprio", "--seeds", "5",
         "--hieros-kwargs",
         RSSM_WM4_KWARGS,
+    ],
+    "rssm_world_model_updates_4_actor_learning_starts_2000_five_seeds": [
+        "--tasks", "cartpole-balance-proprio", "--seeds", "5",
+        "--hieros-kwargs",
+        RSSM_WM4_ALS2000_KWARGS,
     ],
     "rssm_posterior_observation_world_model_updates_4": [
         "--tasks", "cartpole-balance-proprio",
