@@ -66,6 +66,13 @@ RSSM_XS_LATENT_WM4_KWARGS = (
 )
 
 
+#: The same whose actors and critics start at 3000 steps.
+RSSM_XS_LATENT_WM4_ALS3000_KWARGS = (
+    '{"config_overrides": {"world_model": {"kind": "rssm", "deter_dim": 256, "hidden": 256, "stoch_groups": 32, '
+    '"stoch_classes": 32}, "world_model_updates": 4, "actor_learning_starts": 3000}, "policy_kwargs": {"bf16": false}}'
+)
+
+
 #: The same with the imagination horizon of 32.
 RSSM_XS_LATENT_WM4_H32_KWARGS = (
     '{"config_overrides": {"world_model": {"kind": "rssm", "deter_dim": 256, "hidden": 256, "stoch_groups": 32, '
@@ -239,6 +246,11 @@ CHANGE_SUITES = {
         "--tasks", "cartpole-balance-pixels", "--seeds", "5",
         "--hieros-kwargs",
         RSSM_XS_LATENT_WM4_KWARGS,
+    ],
+    "rssm_xs_latent_world_model_updates_4_actor_learning_starts_3000": [
+        "--tasks", "cartpole-balance-pixels",
+        "--hieros-kwargs",
+        RSSM_XS_LATENT_WM4_ALS3000_KWARGS,
     ],
     "rssm_xs_latent_world_model_updates_4_imag_horizon_32": [
         "--tasks", "cartpole-balance-proprio",
