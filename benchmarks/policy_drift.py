@@ -16,8 +16,8 @@ without the suite's evaluations) and reports, for every ``--window`` agent steps
 * ``reward``: the mean reward per agent step;
 * ``cart_out_of_view`` (DMC cartpole tasks): the share of steps whose cart is out of the pixel camera's view
   (:data:`benchmarks.control_failures.CARTPOLE_OUT_OF_VIEW`), from the simulator state;
-* ``warmup``: the share of the window's steps with uniformly random actions (before ``learning_starts``, or before
-  ``actor_learning_starts`` where that is later);
+* ``warmup``: the share of the window's steps with uniformly random actions (before
+  :attr:`~sb3_hieros.HIEROS.actors_start`, the later of ``learning_starts`` and ``actor_learning_starts``);
 * ``actor_grad_norm``: the level-0 actor's gradient norm logged last (``train/level0/actor/grad_norm``), where logged.
 
 Example (the first 1300 steps of the RSSM setting with four world-model updates from proprioception)::
@@ -160,7 +160,7 @@ class PolicyDrift(BaseCallback):
         steps["std"].append(dist.std[0].float().numpy())
         steps["rewards"].append(float(np.asarray(self.locals["rewards"])[0]))
         # num_timesteps counts this step already; its action was random if it was taken before the actors started
-        steps["warmup"].append(self.num_timesteps - 1 < max(model.learning_starts, model.config.actor_learning_starts))
+        steps["warmup"].append(self.num_timesteps - 1 < model.actors_start)
         if self._state is not None:
             steps["states"].append(self._state)
         self._state = physical_state(self.training_env.envs[0])

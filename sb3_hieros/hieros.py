@@ -360,7 +360,7 @@ class HIEROS(OffPolicyAlgorithm):
         policy, hierarchy = self.policy, self.policy.hierarchy
         obs, _ = policy.obs_to_tensor(self._last_obs)  # type: ignore[arg-type]
         is_first = np.asarray(self._last_episode_starts, dtype=bool)
-        acting = max(learning_starts, self.config.actor_learning_starts)
+        acting = max(learning_starts, self.actors_start)  # actors_start itself when SB3 passes self.learning_starts
         random_actions = policy.random_action_vectors(n_envs) if self.num_timesteps < acting else None
         self._hier, step = hierarchy.step(self._hier, obs, th.as_tensor(is_first), False, random_actions)
         buffers = self.level_buffers()
@@ -493,7 +493,7 @@ class HIEROS(OffPolicyAlgorithm):
                 batches = self._sample_batches(due, batch_size, lr)
                 self._apply_updates(batches, hierarchy.world_model_updates(batches), count=False)
             batches = self._sample_batches(due, batch_size, lr)
-            if self.num_timesteps < cfg.actor_learning_starts:  # the world models alone until the actors start
+            if self.num_timesteps < self.actors_start:  # the world models alone until the actors start
                 self._apply_updates(batches, hierarchy.world_model_updates(batches), count=True)
             else:
                 self._apply_updates(batches, hierarchy.train_step(batches), count=True)
@@ -676,6 +676,13 @@ class HIEROS(OffPolicyAlgorithm):
         :return: one count per level
         """
         return list(self._skipped_updates or [])
+
+    @property
+    def actors_start(self) -> int:
+        """The environment step from which the actors choose the actions and learn: the later of ``learning_starts``
+        and the config's ``actor_learning_starts``. Every level acts uniformly at random before it."""
+        assert self.config is not None
+        return max(self.learning_starts, self.config.actor_learning_starts)
 
     @property
     def update_budget(self) -> float:

@@ -122,6 +122,7 @@ def test_actors_start_learning_and_acting_at_actor_learning_starts(monkeypatch):
     actor, critics, world_model = (
         snapshot(m) for m in (level0.actor_critic.actor, level0.actor_critic, level0.world_model)
     )
+    assert model.actors_start == 60
     model.learn(50)
     assert len(random_steps) == 50, "every level acts at random until actor_learning_starts"
     assert model.level_updates()[0] > 0 and changed(level0.world_model, world_model)
@@ -129,6 +130,13 @@ def test_actors_start_learning_and_acting_at_actor_learning_starts(monkeypatch):
     model.learn(30, reset_num_timesteps=False)
     assert len(random_steps) == 60
     assert changed(level0.actor_critic.actor, actor)
+
+
+def test_actors_start_is_the_later_of_the_two_starts():
+    model = HIEROS("MlpPolicy", "Pendulum-v1", **tiny_kwargs(learning_starts=20))
+    assert model.config.actor_learning_starts == 0 and model.actors_start == 20
+    model.learning_starts = 70  # as HIEROS.load(..., learning_starts=70) sets it
+    assert model.actors_start == 70
 
 
 @pytest.mark.parametrize("hierarchical", [True, False])
