@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import pathlib
 import shutil
 
@@ -26,6 +27,16 @@ def test_cpu_suite_table_is_made_from_runs_jsonl(tmp_path):
     assert (tmp_path / "table.md").read_text() == (DOCS / "cpu_suite" / "table.md").read_text()
 
 
+def with_config_overrides(hieros_kwargs: str, **overrides: object) -> str:
+    """``hieros_kwargs`` (a ``--hieros-kwargs`` JSON string) with ``overrides`` added to its ``config_overrides``.
+
+    ``benchmarks.cpu_suite`` matches records by the parsed keywords, so the key order of the string is free.
+    """
+    parsed = json.loads(hieros_kwargs)
+    parsed["config_overrides"].update(overrides)
+    return json.dumps(parsed)
+
+
 #: The HIEROS keywords of the RSSM setting's runs (three-seed and five-seed folders): RSSM, four updates, float32.
 RSSM_WM4_KWARGS = (
     '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 4}, '
@@ -34,16 +45,10 @@ RSSM_WM4_KWARGS = (
 
 
 #: The HIEROS keywords of the runs of the three levers together: RSSM, four updates, horizon 32, float32.
-RSSM_WM4_H32_KWARGS = (
-    '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 4, "imag_horizon": 32}, '
-    '"policy_kwargs": {"bf16": false}}'
-)
+RSSM_WM4_H32_KWARGS = with_config_overrides(RSSM_WM4_KWARGS, imag_horizon=32)
 
 #: The RSSM setting whose actors and critics start at 2000 steps (the world models at the preset's 500).
-RSSM_WM4_ALS2000_KWARGS = (
-    '{"config_overrides": {"world_model": {"kind": "rssm"}, "world_model_updates": 4, "actor_learning_starts": 2000}, '
-    '"policy_kwargs": {"bf16": false}}'
-)
+RSSM_WM4_ALS2000_KWARGS = with_config_overrides(RSSM_WM4_KWARGS, actor_learning_starts=2000)
 
 #: The HIEROS keywords of the S5 world model with the posterior that reads h_t: four updates, float32.
 POSTERIOR_STATE_WM4_KWARGS = (
@@ -53,10 +58,7 @@ POSTERIOR_STATE_WM4_KWARGS = (
 
 
 #: The HIEROS keywords of the S5 world model with the posterior that reads h_t, four updates and horizon 32, float32.
-POSTERIOR_STATE_WM4_H32_KWARGS = (
-    '{"config_overrides": {"world_model": {"posterior": "state"}, "world_model_updates": 4, "imag_horizon": 32}, '
-    '"policy_kwargs": {"bf16": false}}'
-)
+POSTERIOR_STATE_WM4_H32_KWARGS = with_config_overrides(POSTERIOR_STATE_WM4_KWARGS, imag_horizon=32)
 
 
 #: The HIEROS keywords of the RSSM setting with DreamerV3 XS's latent sizes (deter and hidden 256, 32 x 32 classes).
@@ -67,17 +69,11 @@ RSSM_XS_LATENT_WM4_KWARGS = (
 
 
 #: The same whose actors and critics start at 3000 steps.
-RSSM_XS_LATENT_WM4_ALS3000_KWARGS = (
-    '{"config_overrides": {"world_model": {"kind": "rssm", "deter_dim": 256, "hidden": 256, "stoch_groups": 32, '
-    '"stoch_classes": 32}, "world_model_updates": 4, "actor_learning_starts": 3000}, "policy_kwargs": {"bf16": false}}'
-)
+RSSM_XS_LATENT_WM4_ALS3000_KWARGS = with_config_overrides(RSSM_XS_LATENT_WM4_KWARGS, actor_learning_starts=3000)
 
 
 #: The same with the imagination horizon of 32.
-RSSM_XS_LATENT_WM4_H32_KWARGS = (
-    '{"config_overrides": {"world_model": {"kind": "rssm", "deter_dim": 256, "hidden": 256, "stoch_groups": 32, '
-    '"stoch_classes": 32}, "world_model_updates": 4, "imag_horizon": 32}, "policy_kwargs": {"bf16": false}}'
-)
+RSSM_XS_LATENT_WM4_H32_KWARGS = with_config_overrides(RSSM_XS_LATENT_WM4_KWARGS, imag_horizon=32)
 
 
 #: The single-change suites next to the main one: folder under docs/cpu_suite -> arguments of their --report
