@@ -426,7 +426,12 @@ def run(
             for count, metrics in train(model, data, updates, seed):
                 trained += time.perf_counter() - resumed  # the measurements do not count as training
                 figures = {"train_seconds": trained}
-                figures.update({name: metrics.get(name, float("nan")) for name in ("obs_loss", "kl", "post_entropy")})
+                figures.update(
+                    {
+                        name: metrics.get(name, float("nan"))
+                        for name in ("obs_loss", "reward_loss", "kl", "post_entropy")
+                    }
+                )
                 figures.update(measure(model, data, held_out, copies, effect))
                 print(
                     f"{kind} seed {seed}: {count} updates in {trained:.0f} s; pole angular velocity "

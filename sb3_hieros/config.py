@@ -112,6 +112,9 @@ class WorldModelConfig:
     :param head_units: width of the reward and continue heads
     :param head_layers: depth of the reward and continue heads
     :param unimix: uniform mixture of the categorical latents
+    :param reward_scale: weight of the reward head's negative log-likelihood in the prediction loss (eq. 4.11); 1
+        (default) as in the thesis and DreamerV3. Above 1 the representation is pulled harder towards what predicts
+        the reward, against the image decoder's sum over pixels (see the continuous-control results)
     :param dyn_scale: weight of the dynamics KL (alpha_dyn, eq. 4.10)
     :param rep_scale: weight of the representation KL (alpha_rep, eq. 4.10)
     :param free_bits: free nats of both KL terms (eq. 4.12, 4.13)
@@ -142,6 +145,7 @@ class WorldModelConfig:
     head_units: int = 256
     head_layers: int = 2
     unimix: float = 0.01
+    reward_scale: float = 1.0
     dyn_scale: float = 0.5
     rep_scale: float = 0.1
     free_bits: float = 1.0
@@ -182,7 +186,7 @@ class WorldModelConfig:
                 f"WorldModelConfig.s5_state_dim ({self.s5_state_dim}) must be divisible by "
                 f"s5_hippo_blocks ({self.s5_hippo_blocks})"
             )
-        _check_non_negative(self, "image_shift")
+        _check_non_negative(self, "image_shift", "reward_scale")
         if self.weight_decay < 0 or self.warmup < 0 or self.free_bits < 0:
             raise ValueError(
                 "WorldModelConfig.weight_decay, warmup and free_bits must be >= 0, got "

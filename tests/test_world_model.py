@@ -662,3 +662,24 @@ def test_image_shift_trains_on_shifted_frames_as_input_and_target(kind):
     assert th.allclose(eval_loss, plain.loss(SimpleNamespace(observations=obs, **chunk))[0], rtol=1e-5)
     with pytest.raises(ValueError, match=r"WorldModelConfig\.image_shift must be a number >= 0, got -1"):
         tiny_config(kind, image_shift=-1)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_reward_scale_weights_the_reward_likelihood_alone(kind):
+    plain = vector_model(kind)
+    weighted = vector_model(kind, reward_scale=3.0)
+    weighted.load_state_dict(plain.state_dict())
+    obs, actions, is_first = random_chunk(2, 4)
+    chunk = SimpleNamespace(
+        observations=obs, actions=actions, is_first=is_first, rewards=th.rand(2, 4), is_terminal=th.zeros(2, 4)
+    )
+    th.manual_seed(1)
+    plain_loss, plain_metrics, _ = plain.loss(chunk)
+    th.manual_seed(1)
+    weighted_loss, weighted_metrics, _ = weighted.loss(chunk)
+    assert weighted_metrics["reward_loss"] == pytest.approx(plain_metrics["reward_loss"])
+    assert plain_metrics["reward_loss"] > 0
+    # only the reward term changes: L(3) - L(1) = 2 * reward NLL
+    assert float(weighted_loss - plain_loss) == pytest.approx(2.0 * plain_metrics["reward_loss"], rel=1e-4)
+    with pytest.raises(ValueError, match=r"WorldModelConfig\.reward_scale must be a number >= 0, got -1"):
+        tiny_config(kind, reward_scale=-1.0)

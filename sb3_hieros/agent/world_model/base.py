@@ -456,7 +456,7 @@ class WorldModel(nn.Module):
 
         ``L = L_pred + dyn_scale * max(free, KL[sg(q) || p]) + rep_scale * max(free, KL[q || sg(p)])`` with the KL
         summed over the categorical groups; ``L_pred`` is the negative log-likelihood of o_t, r_t and
-        ``c_t = 1 - is_terminal_t`` under the heads on (h_t, z_t).
+        ``c_t = 1 - is_terminal_t`` under the heads on (h_t, z_t), that of r_t weighted by ``reward_scale``.
 
         :param samples: object with ``observations`` (B, T, ...), ``actions`` (B, T, A) = previous actions,
             ``rewards`` (B, T), ``is_first`` (B, T), ``is_terminal`` (B, T) (e.g. ``SequenceSamples``)
@@ -513,7 +513,13 @@ class WorldModel(nn.Module):
         free = self.config.free_bits
         dyn = kl_dyn.clamp(min=free)
         rep = kl_rep.clamp(min=free)
-        per_step = obs_nll + reward_nll + cont_nll + self.config.dyn_scale * dyn + self.config.rep_scale * rep
+        per_step = (
+            obs_nll
+            + self.config.reward_scale * reward_nll
+            + cont_nll
+            + self.config.dyn_scale * dyn
+            + self.config.rep_scale * rep
+        )
         loss = per_step.mean()
         with th.no_grad():
             metrics = {
