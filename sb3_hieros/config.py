@@ -115,6 +115,12 @@ class WorldModelConfig:
     :param reward_scale: weight of the reward head's negative log-likelihood in the prediction loss (eq. 4.11); 1
         (default) as in the thesis and DreamerV3. Above 1 the representation is pulled harder towards what predicts
         the reward, against the image decoder's sum over pixels (see the continuous-control results)
+    :param reward_overshoot: open-loop reward prediction in the world-model loss: from every posterior state of a
+        chunk the prior is rolled this many steps under the replayed actions, and the reward head is trained on the
+        replayed reward of each step it reaches within the episode (mean negative log-likelihood over those steps,
+        weighted by ``reward_scale``); 0 (default) trains the reward head on posterior states only, as the thesis and
+        DreamerV3 do. Not in the thesis or DreamerV3 (multi-step reward prediction as in MuZero and TD-MPC; see the
+        continuous-control results)
     :param dyn_scale: weight of the dynamics KL (alpha_dyn, eq. 4.10)
     :param rep_scale: weight of the representation KL (alpha_rep, eq. 4.10)
     :param free_bits: free nats of both KL terms (eq. 4.12, 4.13)
@@ -146,6 +152,7 @@ class WorldModelConfig:
     head_layers: int = 2
     unimix: float = 0.01
     reward_scale: float = 1.0
+    reward_overshoot: int = 0
     dyn_scale: float = 0.5
     rep_scale: float = 0.1
     free_bits: float = 1.0
@@ -186,7 +193,7 @@ class WorldModelConfig:
                 f"WorldModelConfig.s5_state_dim ({self.s5_state_dim}) must be divisible by "
                 f"s5_hippo_blocks ({self.s5_hippo_blocks})"
             )
-        _check_non_negative(self, "image_shift", "reward_scale")
+        _check_non_negative(self, "image_shift", "reward_scale", "reward_overshoot")
         if self.weight_decay < 0 or self.warmup < 0 or self.free_bits < 0:
             raise ValueError(
                 "WorldModelConfig.weight_decay, warmup and free_bits must be >= 0, got "

@@ -665,6 +665,57 @@ def test_image_shift_trains_on_shifted_frames_as_input_and_target(kind):
 
 
 @pytest.mark.parametrize("kind", KINDS)
+def test_reward_overshoot_adds_the_open_loop_reward_likelihood(kind):
+    plain = vector_model(kind, reward_scale=2.0)
+    with th.no_grad():  # the reward head starts at zero (a uniform two-hot): give it a slope to score
+        for p in plain.reward_head.parameters():
+            p.normal_(0.0, 0.5)
+    overshooting = vector_model(kind, reward_scale=2.0, reward_overshoot=2)
+    overshooting.load_state_dict(plain.state_dict())
+    obs, actions, is_first = random_chunk(2, 4, reset_at=((0, 2),))
+    rewards = th.rand(2, 4)
+    chunk = SimpleNamespace(
+        observations=obs, actions=actions, is_first=is_first, rewards=rewards, is_terminal=th.zeros(2, 4)
+    )
+    th.manual_seed(1)
+    plain_loss, plain_metrics, _ = plain.loss(chunk)
+    th.manual_seed(1)
+    loss, metrics, post = overshooting.loss(chunk)
+    assert "reward_overshoot_loss" not in plain_metrics
+    assert metrics["reward_overshoot_loss"] > 0
+    # the posterior draws come first, so the term is exactly what is added, weighted by reward_scale
+    assert loss.item() == pytest.approx(plain_loss.item() + 2.0 * metrics["reward_overshoot_loss"], rel=1e-5)
+
+    def open_loop(model, targets, seed=2):
+        th.manual_seed(seed)
+        return model.open_loop_reward_nll(post, actions, targets, is_first)
+
+    base = open_loop(overshooting, rewards)
+    # row 0 is never a target; nor is row 2 of sequence 0, where an episode starts
+    unreached = rewards.clone()
+    unreached[:, 0] += 5.0
+    unreached[0, 2] += 5.0
+    assert open_loop(overshooting, unreached).item() == pytest.approx(base.item(), rel=1e-6)
+    reached = rewards.clone()
+    reached[0, 3] += 5.0  # one step from row 2 of sequence 0, where its second episode starts
+    assert open_loop(overshooting, reached).item() > base.item()
+    # more steps than the chunk holds count the same pairs as the chunk's length allows
+    longer = vector_model(kind, reward_scale=2.0, reward_overshoot=10)
+    longer.load_state_dict(plain.state_dict())
+    three = vector_model(kind, reward_scale=2.0, reward_overshoot=3)
+    three.load_state_dict(plain.state_dict())
+    assert open_loop(longer, rewards).item() == pytest.approx(open_loop(three, rewards).item(), rel=1e-6)
+    # its gradient reaches the dynamics and, through the start states, the encoder
+    overshooting.zero_grad()
+    open_loop(overshooting, rewards).backward()
+    for module in (overshooting.reward_head, overshooting.prior_net, overshooting.encoder):
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in module.parameters())
+    assert all(p.grad is None for p in overshooting.decoder.parameters())
+    with pytest.raises(ValueError, match=r"WorldModelConfig\.reward_overshoot must be a number >= 0, got -1"):
+        tiny_config(kind, reward_overshoot=-1)
+
+
+@pytest.mark.parametrize("kind", KINDS)
 def test_reward_scale_weights_the_reward_likelihood_alone(kind):
     plain = vector_model(kind)
     weighted = vector_model(kind, reward_scale=3.0)

@@ -456,7 +456,8 @@ class WorldModel(nn.Module):
 
         ``L = L_pred + dyn_scale * max(free, KL[sg(q) || p]) + rep_scale * max(free, KL[q || sg(p)])`` with the KL
         summed over the categorical groups; ``L_pred`` is the negative log-likelihood of o_t, r_t and
-        ``c_t = 1 - is_terminal_t`` under the heads on (h_t, z_t), that of r_t weighted by ``reward_scale``.
+        ``c_t = 1 - is_terminal_t`` under the heads on (h_t, z_t), that of r_t weighted by ``reward_scale``. With
+        ``config.reward_overshoot`` > 0, :meth:`open_loop_reward_nll` is added, also weighted by ``reward_scale``.
 
         :param samples: object with ``observations`` (B, T, ...), ``actions`` (B, T, A) = previous actions,
             ``rewards`` (B, T), ``is_first`` (B, T), ``is_terminal`` (B, T) (e.g. ``SequenceSamples``)
@@ -521,11 +522,17 @@ class WorldModel(nn.Module):
             + self.config.rep_scale * rep
         )
         loss = per_step.mean()
+        extra: dict[str, th.Tensor] = {}
+        if self.config.reward_overshoot:
+            overshoot_nll = self.open_loop_reward_nll(post, samples.actions, samples.rewards, samples.is_first)
+            loss = loss + self.config.reward_scale * overshoot_nll
+            extra["reward_overshoot_loss"] = overshoot_nll.detach()
         with th.no_grad():
             metrics = {
                 "loss": loss.detach(),
                 "obs_loss": obs_nll.mean(),
                 "reward_loss": reward_nll.mean(),
+                **extra,
                 "cont_loss": cont_nll.mean(),
                 "kl": kl_dyn.mean(),
                 "dyn_loss": dyn.mean(),
@@ -534,6 +541,45 @@ class WorldModel(nn.Module):
                 "post_entropy": -(post_probs * post.logits).sum((-2, -1)).mean(),
             }
         return loss, metrics, post
+
+    def open_loop_reward_nll(
+        self, post: LatentState, actions: th.Tensor, rewards: th.Tensor, is_first: th.Tensor
+    ) -> th.Tensor:
+        """Negative log-likelihood of the replayed rewards under the reward head on open-loop prior states
+        (``config.reward_overshoot``; not in the thesis, whose eq. 4.11 reads the reward from posterior states only).
+
+        From each posterior state s_t the prior is rolled k = 1..K steps under the replayed actions a_t..a_{t+k-1}
+        (``actions[:, t + k]``, the previous action of row t + k), and its reward head is scored on r_{t+k}. A step
+        counts while t + k stays inside the chunk and no episode starts in rows t+1..t+k. The gradient reaches the
+        dynamics, the posterior states and, through them, the encoder: the state must hold what the reward will be
+        after the actions, not only what it is now.
+
+        :param post: posterior states (B, T), attached to the graph
+        :param actions: (B, T, A) previous actions (row t holds a_{t-1})
+        :param rewards: (B, T)
+        :param is_first: (B, T) bool
+        :return: scalar mean over the counted (start, k) pairs (0 when there are none)
+        """
+        batch, length = rewards.shape
+        starts = th.arange(length - 1, device=rewards.device)  # t = 0 .. T-2
+        state = post.select((slice(None), slice(0, length - 1))).flatten_batch()  # (B*(T-1),)
+        inside = th.ones(batch, length - 1, dtype=th.bool, device=rewards.device)
+        total = rewards.new_zeros((), dtype=th.float32)
+        count = rewards.new_zeros((), dtype=th.float32)
+        with self.reuse_step_weights():
+            for k in range(1, self.config.reward_overshoot + 1):
+                rows = (starts + k).clamp(max=length - 1)  # (T-1,)
+                inside = inside & (starts + k < length) & ~is_first[:, rows]  # (B, T-1)
+                if not inside.any():
+                    break
+                state, _ = self._img_step(state, actions[:, rows].reshape(batch * (length - 1), -1), False)
+                logits = self.reward_head(self.features(state))
+                target = rewards[:, rows].reshape(-1).float()
+                nll = -TwoHotSymlog(logits, self.reward_bins, self.reward_bins_antisymmetric).log_prob(target)
+                weight = inside.reshape(-1).float()
+                total = total + (nll.float() * weight).sum()
+                count = count + weight.sum()
+        return total / count.clamp(min=1.0)
 
     def train_step(
         self,
