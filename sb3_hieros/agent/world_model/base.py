@@ -573,9 +573,7 @@ class WorldModel(nn.Module):
                 if not inside.any():
                     break
                 state, _ = self._img_step(state, actions[:, rows].reshape(batch * (length - 1), -1), False)
-                logits = self.reward_head(self.features(state))
-                target = rewards[:, rows].reshape(-1).float()
-                nll = -TwoHotSymlog(logits, self.reward_bins, self.reward_bins_antisymmetric).log_prob(target)
+                nll = -self.reward_dist(state).log_prob(rewards[:, rows].reshape(-1).float())
                 weight = inside.reshape(-1).float()
                 total = total + (nll.float() * weight).sum()
                 count = count + weight.sum()
