@@ -121,6 +121,12 @@ class WorldModelConfig:
         weighted by ``reward_scale``); 0 (default) trains the reward head on posterior states only, as the thesis and
         DreamerV3 do. Not in the thesis or DreamerV3 (multi-step reward prediction as in MuZero and TD-MPC; see the
         continuous-control results)
+    :param prior_decoder_scale: weight of a second image/observation reconstruction in the world-model loss, decoded
+        from the one-step prior state (h_t with z drawn from the prior p(z^_t | m_t) instead of the posterior): the
+        observation at t is then predicted from what came before it (the last state and action), which needs the
+        motion, not only the frame. 0 (default) decodes from posterior states only, as the thesis and DreamerV3
+        do; costs one more decoder pass an update. Not in the thesis or DreamerV3 (see the continuous-control
+        results)
     :param dyn_scale: weight of the dynamics KL (alpha_dyn, eq. 4.10)
     :param rep_scale: weight of the representation KL (alpha_rep, eq. 4.10)
     :param free_bits: free nats of both KL terms (eq. 4.12, 4.13)
@@ -153,6 +159,7 @@ class WorldModelConfig:
     unimix: float = 0.01
     reward_scale: float = 1.0
     reward_overshoot: int = 0
+    prior_decoder_scale: float = 0.0
     dyn_scale: float = 0.5
     rep_scale: float = 0.1
     free_bits: float = 1.0
@@ -193,7 +200,7 @@ class WorldModelConfig:
                 f"WorldModelConfig.s5_state_dim ({self.s5_state_dim}) must be divisible by "
                 f"s5_hippo_blocks ({self.s5_hippo_blocks})"
             )
-        _check_non_negative(self, "image_shift", "reward_scale", "reward_overshoot")
+        _check_non_negative(self, "image_shift", "reward_scale", "reward_overshoot", "prior_decoder_scale")
         if self.weight_decay < 0 or self.warmup < 0 or self.free_bits < 0:
             raise ValueError(
                 "WorldModelConfig.weight_decay, warmup and free_bits must be >= 0, got "

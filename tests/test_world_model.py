@@ -716,6 +716,48 @@ def test_reward_overshoot_adds_the_open_loop_reward_likelihood(kind):
 
 
 @pytest.mark.parametrize("kind", KINDS)
+def test_prior_decoder_adds_the_observation_likelihood_of_the_prior_state(kind):
+    plain = vector_model(kind)
+    with_prior = vector_model(kind, prior_decoder_scale=0.5)
+    with_prior.load_state_dict(plain.state_dict())
+    obs, actions, is_first = random_chunk(2, 4)
+    chunk = SimpleNamespace(
+        observations=obs, actions=actions, is_first=is_first, rewards=th.rand(2, 4), is_terminal=th.zeros(2, 4)
+    )
+    th.manual_seed(1)
+    plain_loss, plain_metrics, _ = plain.loss(chunk)
+    th.manual_seed(1)
+    loss, metrics, post = with_prior.loss(chunk)
+    assert "prior_obs_loss" not in plain_metrics
+    assert metrics["prior_obs_loss"] > 0
+    # the posterior draws come first, so the term is exactly what is added, weighted by prior_decoder_scale
+    assert loss.item() == pytest.approx(plain_loss.item() + 0.5 * metrics["prior_obs_loss"], rel=1e-5)
+    _, prior_logits = with_prior._observe(
+        with_prior.spec.preprocess(with_prior.spec.as_dict(obs)), actions, is_first, None, False
+    )
+    target = with_prior.spec.preprocess(with_prior.spec.as_dict(obs))
+    # with a prior that is certain of one class per group, the decoder reads exactly that one-hot z^ beside h_t
+    certain = th.full_like(prior_logits, -1e4)
+    certain[..., 3] = 0.0
+    one_hot = th.zeros_like(prior_logits)
+    one_hot[..., 3] = 1.0
+    decoded = with_prior.decoder(th.cat([post.deter, one_hot.flatten(-2)], -1))
+    expected = with_prior.decoder.nll(decoded, target, (2, 4)).mean()
+    got = with_prior.prior_observation_nll(post, certain, target)
+    assert got.item() == pytest.approx(expected.item(), rel=1e-5)
+    # the posterior's z is not what it reads: decoding the posterior state scores differently
+    posterior = with_prior.decoder.nll(with_prior.decoder(with_prior.features(post)), target, (2, 4)).mean()
+    assert got.item() != pytest.approx(posterior.item(), rel=1e-3)
+    # its gradient reaches the decoder, the prior and, through the states, the encoder
+    with_prior.zero_grad()
+    with_prior.prior_observation_nll(post, prior_logits, target).backward()
+    for module in (with_prior.decoder, with_prior.prior_net, with_prior.encoder):
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in module.parameters())
+    with pytest.raises(ValueError, match=r"WorldModelConfig\.prior_decoder_scale must be a number >= 0, got -1"):
+        tiny_config(kind, prior_decoder_scale=-1.0)
+
+
+@pytest.mark.parametrize("kind", KINDS)
 def test_reward_scale_weights_the_reward_likelihood_alone(kind):
     plain = vector_model(kind)
     weighted = vector_model(kind, reward_scale=3.0)

@@ -457,7 +457,8 @@ class WorldModel(nn.Module):
         ``L = L_pred + dyn_scale * max(free, KL[sg(q) || p]) + rep_scale * max(free, KL[q || sg(p)])`` with the KL
         summed over the categorical groups; ``L_pred`` is the negative log-likelihood of o_t, r_t and
         ``c_t = 1 - is_terminal_t`` under the heads on (h_t, z_t), that of r_t weighted by ``reward_scale``. With
-        ``config.reward_overshoot`` > 0, :meth:`open_loop_reward_nll` is added, also weighted by ``reward_scale``.
+        ``config.reward_overshoot`` > 0, :meth:`open_loop_reward_nll` is added, also weighted by ``reward_scale``; with
+        ``config.prior_decoder_scale`` > 0, :meth:`prior_observation_nll` is added with that weight.
 
         :param samples: object with ``observations`` (B, T, ...), ``actions`` (B, T, A) = previous actions,
             ``rewards`` (B, T), ``is_first`` (B, T), ``is_terminal`` (B, T) (e.g. ``SequenceSamples``)
@@ -527,6 +528,10 @@ class WorldModel(nn.Module):
             overshoot_nll = self.open_loop_reward_nll(post, samples.actions, samples.rewards, samples.is_first)
             loss = loss + self.config.reward_scale * overshoot_nll
             extra["reward_overshoot_loss"] = overshoot_nll.detach()
+        if self.config.prior_decoder_scale:
+            prior_obs_nll = self.prior_observation_nll(post, prior_logits, obs)
+            loss = loss + self.config.prior_decoder_scale * prior_obs_nll
+            extra["prior_obs_loss"] = prior_obs_nll.detach()
         with th.no_grad():
             metrics = {
                 "loss": loss.detach(),
@@ -541,6 +546,24 @@ class WorldModel(nn.Module):
                 "post_entropy": -(post_probs * post.logits).sum((-2, -1)).mean(),
             }
         return loss, metrics, post
+
+    def prior_observation_nll(self, post: LatentState, prior_logits: th.Tensor, obs: dict[str, th.Tensor]) -> th.Tensor:
+        """Negative log-likelihood of the observations under the decoder on one-step prior states
+        (``config.prior_decoder_scale``; not in the thesis, whose eq. 4.11 decodes posterior states only).
+
+        At each row the decoder reads ``[h_t, z^_t]`` with z^_t drawn (straight-through) from the prior
+        p(z^_t | m_t) instead of the posterior: o_t is predicted from s_{t-1} and a_{t-1} alone. The gradient reaches
+        the decoder, the prior, the sequence model and, through the earlier posterior states, the encoder.
+
+        :param post: posterior states (B, T), attached to the graph
+        :param prior_logits: (B, T, G, K) normalised log-probabilities of the prior (unimix included)
+        :param obs: the preprocessed observations the posterior was built from
+        :return: scalar mean over B x T
+        """
+        prior_stoch = OneHotCategoricalST(prior_logits, 0.0, event_ndims=1).sample().flatten(-2)  # (B, T, G*K)
+        lead = tuple(post.batch_shape)
+        pred = self.decoder(th.cat([post.deter, prior_stoch], -1))
+        return self.decoder.nll(pred, obs, lead).mean()
 
     def open_loop_reward_nll(
         self, post: LatentState, actions: th.Tensor, rewards: th.Tensor, is_first: th.Tensor
