@@ -61,6 +61,7 @@ THESIS: dict[str, str] = {
     "world_model.unimix": "4.4 (value: DreamerV3)",
     "world_model.reward_scale": "eq. 4.11 (weight 1 in the thesis and DreamerV3)",
     "world_model.reward_overshoot": "not in the thesis or DreamerV3 (open-loop reward prediction; off)",
+    "world_model.prior_decoder_scale": "not in the thesis or DreamerV3 (observation decoded from the prior; off)",
     "world_model.dyn_scale": "eq. 4.10, table 4.6.3",
     "world_model.rep_scale": "eq. 4.10, table 4.6.3",
     "world_model.free_bits": "eq. 4.12, 4.13",
