@@ -715,19 +715,28 @@ def test_reward_overshoot_adds_the_open_loop_reward_likelihood(kind):
         tiny_config(kind, reward_overshoot=-1)
 
 
-@pytest.mark.parametrize("kind", KINDS)
-def test_prior_decoder_adds_the_observation_likelihood_of_the_prior_state(kind):
+def plain_and_changed_losses(kind, **overrides):
+    """The loss of one random chunk under a default vector model and under a copy of its weights with ``overrides``,
+    each drawing its posteriors from seed 1: (changed model, chunk, plain loss, changed loss)."""
     plain = vector_model(kind)
-    with_prior = vector_model(kind, prior_decoder_scale=0.5)
-    with_prior.load_state_dict(plain.state_dict())
+    changed = vector_model(kind, **overrides)
+    changed.load_state_dict(plain.state_dict())
     obs, actions, is_first = random_chunk(2, 4)
     chunk = SimpleNamespace(
         observations=obs, actions=actions, is_first=is_first, rewards=th.rand(2, 4), is_terminal=th.zeros(2, 4)
     )
     th.manual_seed(1)
-    plain_loss, plain_metrics, _ = plain.loss(chunk)
+    plain_out = plain.loss(chunk)
     th.manual_seed(1)
-    loss, metrics, post = with_prior.loss(chunk)
+    return changed, chunk, plain_out, changed.loss(chunk)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_prior_decoder_adds_the_observation_likelihood_of_the_prior_state(kind):
+    with_prior, chunk, (plain_loss, plain_metrics, _), (loss, metrics, post) = plain_and_changed_losses(
+        kind, prior_decoder_scale=0.5
+    )
+    obs, actions, is_first = chunk.observations, chunk.actions, chunk.is_first
     assert "prior_obs_loss" not in plain_metrics
     assert metrics["prior_obs_loss"] > 0
     # the posterior draws come first, so the term is exactly what is added, weighted by prior_decoder_scale
@@ -759,20 +768,12 @@ def test_prior_decoder_adds_the_observation_likelihood_of_the_prior_state(kind):
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_reward_scale_weights_the_reward_likelihood_alone(kind):
-    plain = vector_model(kind)
-    weighted = vector_model(kind, reward_scale=3.0)
-    weighted.load_state_dict(plain.state_dict())
-    obs, actions, is_first = random_chunk(2, 4)
-    chunk = SimpleNamespace(
-        observations=obs, actions=actions, is_first=is_first, rewards=th.rand(2, 4), is_terminal=th.zeros(2, 4)
+    _, _, (plain_loss, plain_metrics, _), (weighted_loss, weighted_metrics, _) = plain_and_changed_losses(
+        kind, reward_scale=3.0
     )
-    th.manual_seed(1)
-    plain_loss, plain_metrics, _ = plain.loss(chunk)
-    th.manual_seed(1)
-    weighted_loss, weighted_metrics, _ = weighted.loss(chunk)
     assert weighted_metrics["reward_loss"] == pytest.approx(plain_metrics["reward_loss"])
     assert plain_metrics["reward_loss"] > 0
     # only the reward term changes: L(3) - L(1) = 2 * reward NLL
-    assert float(weighted_loss - plain_loss) == pytest.approx(2.0 * plain_metrics["reward_loss"], rel=1e-4)
+    assert weighted_loss.item() - plain_loss.item() == pytest.approx(2.0 * plain_metrics["reward_loss"], rel=1e-4)
     with pytest.raises(ValueError, match=r"WorldModelConfig\.reward_scale must be a number >= 0, got -1"):
         tiny_config(kind, reward_scale=-1.0)
