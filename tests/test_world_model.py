@@ -741,16 +741,14 @@ def test_prior_decoder_adds_the_observation_likelihood_of_the_prior_state(kind):
     assert metrics["prior_obs_loss"] > 0
     # the posterior draws come first, so the term is exactly what is added, weighted by prior_decoder_scale
     assert loss.item() == pytest.approx(plain_loss.item() + 0.5 * metrics["prior_obs_loss"], rel=1e-5)
-    _, prior_logits = with_prior._observe(
-        with_prior.spec.preprocess(with_prior.spec.as_dict(obs)), actions, is_first, None, False
-    )
     target = with_prior.spec.preprocess(with_prior.spec.as_dict(obs))
+    _, prior_logits = with_prior._observe(target, actions, is_first, None, False)
     # with a prior that is certain of one class per group, the decoder reads exactly that one-hot z^ beside h_t
     certain = th.full_like(prior_logits, -1e4)
     certain[..., 3] = 0.0
     one_hot = th.zeros_like(prior_logits)
     one_hot[..., 3] = 1.0
-    decoded = with_prior.decoder(th.cat([post.deter, one_hot.flatten(-2)], -1))
+    decoded = with_prior.decoder(with_prior.features(post._replace(stoch=one_hot.flatten(-2))))
     expected = with_prior.decoder.nll(decoded, target, (2, 4)).mean()
     got = with_prior.prior_observation_nll(post, certain, target)
     assert got.item() == pytest.approx(expected.item(), rel=1e-5)

@@ -561,9 +561,8 @@ class WorldModel(nn.Module):
         :return: scalar mean over B x T
         """
         prior_stoch = OneHotCategoricalST(prior_logits, 0.0, event_ndims=1).sample().flatten(-2)  # (B, T, G*K)
-        lead = tuple(post.batch_shape)
-        pred = self.decoder(th.cat([post.deter, prior_stoch], -1))
-        return self.decoder.nll(pred, obs, lead).mean()
+        pred = self.decoder(self.features(post._replace(stoch=prior_stoch)))
+        return self.decoder.nll(pred, obs, tuple(post.batch_shape)).mean()
 
     def open_loop_reward_nll(
         self, post: LatentState, actions: th.Tensor, rewards: th.Tensor, is_first: th.Tensor
